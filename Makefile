@@ -1,0 +1,36 @@
+# Two commands on a fresh clone:  `make demo`  and  `make test`.
+# Both create .venv when missing and install torch (CPU build, pinned) before the package.
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.pavemap-installed
+EXTRAS ?= yolo,nuscenes,sfm,dev
+
+.PHONY: demo test install lint bench clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile scripts/setup_system.sh
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[$(EXTRAS)]'
+	bash scripts/setup_system.sh
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/pavemap demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q tests
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check src tests bench
+
+bench: $(STAMP)
+	$(PY) bench/synth_bench.py
+	$(PY) bench/mesh_bench.py
+	$(PY) bench/fusion_bench.py
+	$(PY) bench/run_bench.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info
