@@ -9,11 +9,12 @@ EXTRAS ?= yolo,nuscenes,sfm,dev
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml Makefile scripts/setup_system.sh
+$(STAMP): pyproject.toml constraints.txt Makefile scripts/setup_system.sh
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[$(EXTRAS)]'
+	# constraints keep ultralytics' torchvision from pulling a multi-GB CUDA torch
+	$(PY) -m pip install -q -c constraints.txt -e '.[$(EXTRAS)]'
 	bash scripts/setup_system.sh
 	touch $(STAMP)
 
