@@ -29,7 +29,7 @@ def _root() -> None:
     """pavemap: road defect mapping. Run `pavemap demo` for a full example on synthetic data."""
 
 
-COMMAND_MODULES = ("info", "synth", "detect", "reconstruct", "fuse", "imports", "train", "run")
+COMMAND_MODULES = ("info", "synth", "detect", "reconstruct", "fuse", "imports", "train", "run", "compare")
 
 for _name in COMMAND_MODULES:
     _mod = f"pavemap.commands.{_name}"

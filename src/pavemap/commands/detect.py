@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
         conf: float = typer.Option(0.05, help="yolo: minimum confidence kept."),
         device: str = typer.Option("auto", help="yolo: auto, cpu, cuda or cuda:N."),
         batch: int = typer.Option(8, help="yolo: images per batch."),
-        class_map: Path | None = typer.Option(None, help="yolo: YAML mapping model class names to D00/D10/D20/D40 or 'drop'."),
+        class_map: Path | None = typer.Option(None, help="yolo: YAML map of model class names to D00..D40 or 'drop'."),
     ) -> None:
         """Detect road defects in every view of a sequence."""
         from pavemap.io.sequence import DETECTIONS_FILE, read_sequence

@@ -1,0 +1,125 @@
+"""``pavemap fuse`` (stages 2-3 on a sequence) and ``pavemap eval`` (score a run against synthetic truth)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from pavemap.errors import PavemapError
+
+
+def _surface(kind: str, seq, mesh_dir: Path | None):  # noqa: ANN001, ANN202
+    """(surface HeightField, mesh or None) for --surface mesh|truth|plane."""
+    mesh = None
+    if kind == "auto":
+        has_truth = seq.root is not None and (seq.root / "truth" / "height.npy").is_file()
+        kind = "mesh" if mesh_dir is not None else ("truth" if has_truth else "plane")
+    if mesh_dir is not None:
+        from pavemap.mesh import load_mesh
+
+        mesh = load_mesh(mesh_dir)
+    if kind == "mesh":
+        if mesh is None:
+            raise PavemapError("--surface mesh needs --mesh DIR (a stage-1 output folder)")
+        return mesh.surface, mesh
+    if kind == "truth":
+        from pavemap.geometry import HeightField
+
+        return HeightField.from_truth(seq.root), mesh
+    if kind == "plane":
+        import numpy as np
+
+        from pavemap.geometry import HeightField
+
+        if mesh is not None:
+            s = mesh.surface
+            return HeightField.plane(s.x0, s.y0, s.res, s.nx, s.ny, 0.0), mesh
+        # A flat road under the trajectory: cameras' mean height above the road is unknown, so the
+        # plane is z = 0 (the world convention of our importers) over the trajectory's box + 20 m.
+        c = seq.camera_centres()
+        res = 0.1
+        x0, y0 = np.floor(c[:, :2].min(0) - 20.0)
+        x1, y1 = np.ceil(c[:, :2].max(0) + 20.0)
+        return HeightField.plane(x0, y0, res, int((x1 - x0) / res) + 1, int((y1 - y0) / res) + 1), mesh
+    raise PavemapError(f"unknown --surface {kind!r}; choose mesh, truth or plane")
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def fuse(
+        seq: Path = typer.Argument(..., help="Sequence folder."),
+        mesh: Path | None = typer.Option(None, "--mesh", help="Stage-1 mesh folder (surface and mesh road mask)."),
+        detections: Path | None = typer.Option(
+            None, "--detections", help="detections.jsonl or a folder of YOLO txt files (default SEQ/detections.jsonl)."
+        ),
+        out: Path = typer.Option(..., "--out", help="Output folder."),
+        association: str | None = typer.Option(None, help="ray | hit | footprint (default: preset's)."),
+        mask: str | None = typer.Option(None, help="Road mask for the filter: frame | mesh | both."),
+        surface: str = typer.Option(
+            "auto", help="Surface: mesh | truth (synthetic) | plane (z=0); auto = mesh if --mesh, else truth/plane."
+        ),
+        preset: str = typer.Option("nuscenes", help="Fusion preset: nuscenes (tau_conf 0.05) | kitti (0.10)."),
+        tau_conf: float | None = typer.Option(None, help="Confidence threshold."),
+        tau_road: float | None = typer.Option(None, help="Road-overlap threshold."),
+        n_min: int | None = typer.Option(None, help="Observations for a defect vertex."),
+        truth: bool = typer.Option(True, help="Also write eval.json when the sequence has truth."),
+    ) -> None:
+        """Filter detections, cast them onto the road surface and fuse them into defect instances."""
+        from pavemap.detect.sources import load_detections
+        from pavemap.fuse import FusionConfig, write_fusion
+        from pavemap.fuse import fuse as run_fuse
+        from pavemap.io.atomic import atomic_write_json
+        from pavemap.io.sequence import DETECTIONS_FILE, read_sequence
+
+        s = read_sequence(seq)
+        cfg = FusionConfig.preset(preset)
+        for name, value in (("association", association), ("mask", mask), ("tau_conf", tau_conf),
+                            ("tau_road", tau_road), ("n_min", n_min)):
+            if value is not None:
+                setattr(cfg, name, value)
+        cfg.validate()
+        det_path = detections if detections is not None else seq / DETECTIONS_FILE
+        if not det_path.exists():
+            raise PavemapError(f"{det_path}: no detections (run `pavemap detect {seq}` or give --detections)")
+        dets = load_detections(det_path, s)
+        surf, m = _surface(surface, s, mesh)
+        result = run_fuse(s, dets, surf, cfg, mesh=m)
+        write_fusion(result, out)
+        mt = result.metrics
+        typer.echo(
+            f"{mt['input_detections']} detections: {mt['invalid_detections']} invalid, {mt['below_conf']} below "
+            f"conf, {mt['filtered_detections']} off road (FR {mt['filter_rate']:.1%}), {mt['valid_detections']} "
+            f"valid, MSR {mt['msr']:.1%} -> {len(result.instances)} defects in {out}"
+        )
+        if truth and (seq / "truth" / "defects.geojson").is_file():
+            from pavemap.evaluate import evaluate
+
+            ev = evaluate(out, seq)
+            atomic_write_json(out / "eval.json", ev)
+            typer.echo(_eval_line(ev))
+
+    @app.command(name="eval")
+    def eval_(
+        run: Path = typer.Argument(..., help="Run folder written by `pavemap fuse` or `pavemap run`."),
+        truth: Path = typer.Option(..., "--truth", help="Synthetic sequence folder holding truth/."),
+    ) -> None:
+        """Score a run's defects against ground truth -> RUN/eval.json."""
+        from pavemap.evaluate import evaluate
+        from pavemap.io.atomic import atomic_write_json
+
+        ev = evaluate(run, truth)
+        atomic_write_json(run / "eval.json", ev)
+        typer.echo(_eval_line(ev))
+        typer.echo(f"-> {run / 'eval.json'}")
+
+
+def _eval_line(ev: dict) -> str:
+    def f(v: object, fmt: str = ".2f") -> str:
+        return "n/a" if v is None else format(v, fmt)
+
+    b = ev["baseline"]
+    return (f"F1 {f(ev['f1'])} (P {f(ev['precision'])}, R {f(ev['recall'])}), median error "
+            f"{f(ev['median_error_m'], '.3f')} m, p90 {f(ev['p90_error_m'], '.3f')} m, off-road FP removed "
+            f"{f(ev['fp_removed'], '.1%')}, true lost {f(ev['tp_lost'], '.1%')}; single-frame baseline F1 "
+            f"{f(b['f1'])} (P {f(b['precision'])}, R {f(b['recall'])})")

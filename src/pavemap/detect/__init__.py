@@ -1,0 +1,14 @@
+"""Stage 2: detections in (any backend or a user's file) and the semantic road filter."""
+
+from pavemap.detect.filter import box_ratio, filter_detections, integral_image, sanitize
+from pavemap.detect.sources import load_detections, read_yolo_dir, read_yolo_txt
+
+__all__ = [
+    "box_ratio",
+    "filter_detections",
+    "integral_image",
+    "load_detections",
+    "read_yolo_dir",
+    "read_yolo_txt",
+    "sanitize",
+]

@@ -1,0 +1,221 @@
+"""Stage 2 filtering (SPEC §2): sanitise detections, confidence threshold, road-overlap filter.
+
+``R_road(b)`` = share of the box's pixels whose class is road, computed for all boxes of a
+view at once from an integral image (four gathers per box). The road mask comes from the
+view's own semantic map (``frame``), from the road mesh rendered into the view (``mesh``),
+or both (a detection must pass both; the frame mask sees occluders such as parked cars,
+the mesh mask does not, SPEC §5).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from pavemap.io.sequence import load_semantics
+from pavemap.types import NUM_DEFECT_CLASSES, Detection, Sequence
+
+if TYPE_CHECKING:
+    from pavemap.fuse.config import FusionConfig
+
+log = logging.getLogger("pavemap")
+
+# Reasons a detection is not used; "kept" is the only one that continues to fusion.
+INVALID_REASONS = ("unknown_frame", "unknown_camera", "bad_box", "inverted_box", "outside_image",
+                   "unknown_cls", "bad_conf")
+FILTER_REASONS = ("low_conf", "off_road")
+
+
+def integral_image(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool -> (H+1, W+1) int64 summed-area table with a zero first row and column."""
+    ii = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1, out=ii[1:, 1:])
+    return ii
+
+
+def box_ratio(mask: np.ndarray, boxes: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """Share of True pixels of ``mask`` (H, W) inside each box (N, 4) x1 y1 x2 y2 -> (N,) float64.
+
+    Boxes are in full-resolution pixels, pixel-centre convention (column ``c`` has its centre at
+    ``u = c``, as :meth:`Camera.scaled`); a pixel counts when its centre lies in the box.
+    ``scale`` maps boxes onto a mask of a reduced size. Every box covers at least one pixel.
+    """
+    H, W = mask.shape
+    b = (np.asarray(boxes, dtype=np.float64).reshape(-1, 4) + 0.5) * scale - 0.5
+    c0 = np.clip(np.ceil(b[:, 0]), 0, W - 1).astype(np.int64)
+    r0 = np.clip(np.ceil(b[:, 1]), 0, H - 1).astype(np.int64)
+    c1 = np.clip(np.floor(b[:, 2]) + 1, c0 + 1, W).astype(np.int64)
+    r1 = np.clip(np.floor(b[:, 3]) + 1, r0 + 1, H).astype(np.int64)
+    ii = integral_image(mask)
+    inside = ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
+    return inside / ((r1 - r0) * (c1 - c0))
+
+
+def sanitize(seq: Sequence, detections: list[Detection]) -> tuple[list[Detection | None], list[str]]:
+    """Check each detection against the sequence. Returns (clipped detection or None, reason) per input.
+
+    Reasons: ``ok`` or one of INVALID_REASONS. Boxes are clipped to the image; a box with no
+    area left is ``outside_image``.
+    """
+    frames = seq.frame_by_index()
+    out: list[Detection | None] = []
+    reasons: list[str] = []
+    for d in detections:
+        reason = "ok"
+        frame = frames.get(int(d.frame)) if _is_int(d.frame) else None
+        box = np.asarray(d.box, dtype=np.float64) if len(d.box) == 4 else np.full(4, np.nan)
+        if frame is None:
+            reason = "unknown_frame"
+        elif d.camera not in frame.views:
+            reason = "unknown_camera"
+        elif not np.all(np.isfinite(box)):
+            reason = "bad_box"
+        elif box[2] < box[0] or box[3] < box[1]:
+            reason = "inverted_box"
+        elif not _is_int(d.cls) or not 0 <= int(d.cls) < NUM_DEFECT_CLASSES:
+            reason = "unknown_cls"
+        elif not isinstance(d.conf, int | float) or not math.isfinite(d.conf) or not 0.0 <= d.conf <= 1.0:
+            reason = "bad_conf"
+        clipped = None
+        if reason == "ok":
+            cam = seq.cameras[d.camera]
+            x1, x2 = np.clip(box[[0, 2]], 0.0, float(cam.width))
+            y1, y2 = np.clip(box[[1, 3]], 0.0, float(cam.height))
+            if x2 - x1 <= 0.0 or y2 - y1 <= 0.0:
+                reason = "outside_image"
+            else:
+                clipped = Detection(int(d.frame), d.camera, (float(x1), float(y1), float(x2), float(y2)),
+                                    int(d.cls), float(d.conf))
+        out.append(clipped)
+        reasons.append(reason)
+    return out, reasons
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool)
+
+
+def _warn_invalid(detections: list[Detection], reasons: list[str]) -> None:
+    bad = [(i, r) for i, r in enumerate(reasons) if r in INVALID_REASONS]
+    if not bad:
+        return
+    counts = Counter(r for _, r in bad)
+    first = "; ".join(
+        f"#{i} frame {detections[i].frame} {detections[i].camera} box {list(detections[i].box)} "
+        f"cls {detections[i].cls} conf {detections[i].conf}: {r}"
+        for i, r in bad[:3]
+    )
+    log.warning("skipped %d unusable detection(s) (%s); first: %s", len(bad),
+                ", ".join(f"{k} {v}" for k, v in sorted(counts.items())), first)
+
+
+class _MaskSource:
+    """Road masks per view from the frame semantics and/or the mesh, with fallbacks and warnings."""
+
+    def __init__(self, seq: Sequence, config: FusionConfig, mesh: object | None):
+        self.seq = seq
+        self.mesh = mesh
+        self.mode = config.mask
+        self.scale = config.mesh_mask_scale
+        self.road_lut = seq.class_lut("road")
+        self.frames = seq.frame_by_index()
+        self.fallbacks: Counter[str] = Counter()
+        if self.mode in ("mesh", "both") and mesh is None:
+            log.warning("mask source %r needs a mesh and none was given; using the frame semantics", self.mode)
+            self.fallbacks["no_mesh"] += 1
+            self.mode = "frame"
+
+    def ratios(self, frame_index: int, camera: str, boxes: np.ndarray) -> np.ndarray:
+        """(N, 4) boxes of one view -> (N,) road share (1.0 when no mask is available: not filtered)."""
+        view = self.frames[frame_index].views[camera]
+        r_frame = r_mesh = None
+        if self.mode in ("frame", "both"):
+            if view.semantics and self.seq.root is not None:
+                sem = load_semantics(self.seq.path(view.semantics))
+                r_frame = box_ratio(self.road_lut[sem], boxes, sem.shape[1] / self.seq.cameras[camera].width)
+            else:
+                self.fallbacks["no_semantics"] += 1
+        # The mesh mask is used in mesh / both modes, and as the fallback of a view without semantics.
+        want_mesh = self.mode in ("mesh", "both") or r_frame is None
+        if want_mesh and self.mesh is not None:
+            r_mesh = box_ratio(self._mesh_mask(view, camera), boxes, self.scale)
+        if r_frame is not None and r_mesh is not None:
+            return np.minimum(r_frame, r_mesh)
+        if r_frame is not None:
+            return r_frame
+        if r_mesh is not None:
+            return r_mesh
+        self.fallbacks["unfiltered_views"] += 1
+        return np.ones(len(boxes))
+
+    def _mesh_mask(self, view: object, camera: str) -> np.ndarray:
+        from pavemap.mesh import render_view
+
+        cam = self.seq.cameras[camera]
+        out = render_view(self.mesh, cam, view.T_world_cam, scale=self.scale)  # type: ignore[attr-defined]
+        labels = np.asarray(out["labels"].detach().cpu().numpy() if hasattr(out["labels"], "detach")
+                            else out["labels"]).astype(np.int64)
+        valid = np.asarray(out["valid"].detach().cpu().numpy() if hasattr(out["valid"], "detach")
+                           else out["valid"]).astype(bool)
+        return self.road_lut[np.clip(labels, 0, 255)] & valid
+
+
+def filter_detections(
+    seq: Sequence, detections: list[Detection], config: FusionConfig, mesh: object | None = None,
+    stats: dict | None = None,
+) -> tuple[list[Detection], list[dict]]:
+    """Sanitise, threshold on confidence and filter by road overlap.
+
+    Returns the kept detections (boxes clipped to the image, input order) and one record per
+    input detection: ``index``, ``frame``, ``camera``, ``box``, ``cls``, ``conf``, ``kept``,
+    ``reason`` (``kept`` | INVALID_REASONS | ``low_conf`` | ``off_road``) and ``r_road``
+    (None when not computed). ``stats``, when given, receives the mask fallbacks.
+    """
+    clean, reasons = sanitize(seq, detections)
+    _warn_invalid(detections, reasons)
+    r_road = np.full(len(detections), np.nan)
+    for i, (c, r) in enumerate(zip(clean, reasons, strict=True)):
+        if r == "ok" and c is not None and c.conf < config.tau_conf:
+            reasons[i] = "low_conf"
+    by_view: dict[tuple[int, str], list[int]] = {}
+    for i, r in enumerate(reasons):
+        if r == "ok":
+            c = clean[i]
+            assert c is not None
+            by_view.setdefault((c.frame, c.camera), []).append(i)
+    masks = _MaskSource(seq, config, mesh)
+    for (frame, camera), idx in by_view.items():
+        boxes = np.array([clean[i].box for i in idx], dtype=np.float64)  # type: ignore[union-attr]
+        r_road[idx] = masks.ratios(frame, camera, boxes)
+    if masks.fallbacks.get("no_semantics"):
+        log.warning("%d view(s) have no semantic map; %s", masks.fallbacks["no_semantics"],
+                    "used the mesh road mask" if mesh is not None else "their detections are not road-filtered")
+    kept: list[Detection] = []
+    records: list[dict] = []
+    for i, d in enumerate(detections):
+        if reasons[i] == "ok":
+            reasons[i] = "kept" if r_road[i] > config.tau_road else "off_road"
+        c = clean[i]
+        if reasons[i] == "kept":
+            assert c is not None
+            kept.append(c)
+        box = list(c.box) if c is not None else [float(x) if _finite(x) else None for x in d.box]
+        records.append({
+            "index": i, "frame": d.frame, "camera": d.camera, "box": [None if v is None else round(v, 2)
+                                                                    for v in box],
+            "cls": d.cls, "conf": float(d.conf) if _finite(d.conf) else None,
+            "kept": reasons[i] == "kept", "reason": reasons[i],
+            "r_road": None if not np.isfinite(r_road[i]) else round(float(r_road[i]), 4),
+        })
+    if stats is not None:
+        stats["mask_fallbacks"] = dict(masks.fallbacks)
+        stats["mask_used"] = masks.mode
+    return kept, records
+
+
+def _finite(v: object) -> bool:
+    return isinstance(v, int | float | np.number) and math.isfinite(float(v))

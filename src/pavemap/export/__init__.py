@@ -1,0 +1,159 @@
+"""Outputs people use: GeoJSON, GeoTIFF, CSV, figures and the self-contained HTML report.
+
+``write_outputs`` writes them all into a run folder; each writer is also usable alone.
+Every file is written under a temporary name and renamed, so a partial file never looks complete;
+``report.html`` is written last.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from pavemap.errors import PavemapError
+from pavemap.export.figures import fig_bev_overview, fig_frame_overlay, fig_threshold_sweep
+from pavemap.export.geojson import instances_to_geojson, read_geojson, write_geojson
+from pavemap.export.geotiff import write_geotiff
+from pavemap.export.report import write_report
+from pavemap.export.tables import to_dataframe, write_csv
+from pavemap.io.atomic import atomic_path, atomic_write_json
+from pavemap.types import DefectInstance, GeoOrigin
+
+
+def write_png(path: str | os.PathLike, img: np.ndarray) -> Path:
+    """Write an (H, W, 3|4) uint8 image (or (H, W)) as PNG atomically."""
+    from PIL import Image
+
+    a = np.asarray(img)
+    if a.dtype != np.uint8:
+        raise PavemapError(f"{path}: image must be uint8, got {a.dtype}")
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(a)).save(tmp, format="PNG")
+    return Path(path)
+
+
+def _check_bev(name: str, img: np.ndarray | None, mesh_grid: dict | None) -> np.ndarray | None:
+    if img is None:
+        return None
+    a = np.asarray(img)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+        raise PavemapError(f"{name} must be (ny, nx, 3) uint8, got {a.shape} {a.dtype}")
+    if mesh_grid is None:
+        raise PavemapError(f"{name} given without its mesh grid")
+    from pavemap.export.geotiff import check_grid
+
+    check_grid(mesh_grid, a.shape[:2], f"{name} grid")
+    return a
+
+
+def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], prob_map: np.ndarray,
+                  class_maps: np.ndarray, grid: dict, bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
+                  mesh_grid: dict | None, geo_origin: GeoOrigin | None, metrics: dict | None,
+                  config: dict | None, detections: list[dict] | None, figures_extra: dict | None = None, *,
+                  mesh_path: str | os.PathLike | None = None, trajectory: np.ndarray | None = None,
+                  title: str = "pavemap defect report", progress: bool = True) -> dict[str, Path]:
+    """Write every output of a run into ``out_dir``; returns {name: path}.
+
+    Arrays: ``prob_map`` (H, W) float and ``class_maps`` (4, H, W) float on ``grid``
+    {"x0","y0","res","shape"} (rows go +y); ``bev_rgb``/``bev_semantic`` (ny, nx, 3) uint8 on ``mesh_grid``.
+    ``detections``: records {frame, camera, box, cls, conf, kept, reason, r_road, mapped}.
+    ``figures_extra`` (all optional):
+      - "sweep": rows [{"tau_conf": .., metric: ..}] -> figures/threshold_sweep.png (Figure 13 style)
+      - "frames": [{"frame": int, "camera": str, "image": (H, W, 3) uint8}] -> figures/frame_*.png overlays
+        of that view's detections (pick views with ``figures.select_overlay_frames``)
+      - "images": {caption: png path} of figures made elsewhere, embedded in the report
+    ``mesh_path``: stage 1's road_mesh.ply, copied into ``out_dir`` when it lives elsewhere.
+    ``trajectory`` (F, 2|3) world metres, drawn on the report map.
+    """
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "figures").mkdir(exist_ok=True)
+    except OSError as e:
+        raise PavemapError(f"{out}: cannot create the output folder ({e.strerror or e})") from None
+    if not os.access(out, os.W_OK):
+        raise PavemapError(f"{out}: output folder is not writable")
+    bev_rgb = _check_bev("bev_rgb", bev_rgb, mesh_grid)
+    bev_semantic = _check_bev("bev_semantic", bev_semantic, mesh_grid)
+    extra = dict(figures_extra or {})
+    unknown = set(extra) - {"sweep", "frames", "images"}
+    if unknown:
+        raise PavemapError(f"figures_extra: unknown key(s) {sorted(unknown)}; expected sweep, frames, images")
+    detections = list(detections) if detections is not None else None
+    paths: dict[str, Path] = {}
+    figs: dict[str, Path] = {}
+    frames = list(extra.get("frames") or [])
+    steps = 6 + len(frames) + bool(extra.get("sweep")) + (mesh_path is not None)
+    bar = tqdm(total=steps, desc="outputs", unit="file", disable=not progress, leave=False)
+
+    def step(name: str) -> None:
+        bar.set_postfix_str(name)
+        bar.update(1)
+
+    try:
+        paths["defects.geojson"] = write_geojson(out / "defects.geojson", instances, geo_origin)
+        step("defects.geojson")
+        paths["defects.csv"] = write_csv(out / "defects.csv", instances, geo_origin)
+        step("defects.csv")
+        paths["defect_map.tif"] = write_geotiff(out / "defect_map.tif", prob_map, class_maps, grid, geo_origin)
+        step("defect_map.tif")
+        # PNGs are north-up like any picture: our rows go +y, so flip
+        if bev_rgb is not None:
+            paths["bev_rgb.png"] = write_png(out / "bev_rgb.png", bev_rgb[::-1])
+        if bev_semantic is not None:
+            paths["bev_semantic.png"] = write_png(out / "bev_semantic.png", bev_semantic[::-1])
+        if metrics is not None:
+            paths["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
+        step("bev images")
+        if mesh_path is not None:
+            src = Path(mesh_path)
+            dst = out / "road_mesh.ply"
+            if not src.is_file():
+                raise PavemapError(f"{src}: road mesh not found")
+            if src.resolve() != dst.resolve():
+                with atomic_path(dst) as tmp:
+                    shutil.copyfile(src, tmp)
+            paths["road_mesh.ply"] = dst
+            step("road_mesh.ply")
+        elif (out / "road_mesh.ply").is_file():
+            paths["road_mesh.ply"] = out / "road_mesh.ply"
+        figs["Figure 11 layout: BEV RGB, semantics, defects, statistics"] = fig_bev_overview(
+            out / "figures" / "bev_overview.png", bev_rgb, bev_semantic, mesh_grid, instances, metrics,
+            prob_map, grid, title=title)
+        step("figures/bev_overview.png")
+        if extra.get("sweep"):
+            figs["confidence threshold sweep (Figure 13 style)"] = fig_threshold_sweep(
+                out / "figures" / "threshold_sweep.png", list(extra["sweep"]))
+            step("figures/threshold_sweep.png")
+        for fr in frames:
+            f, cam = int(fr["frame"]), str(fr["camera"])
+            dets = [d for d in (detections or []) if int(d["frame"]) == f and str(d["camera"]) == cam]
+            name = f"frame_{f:06d}_{cam}.png"
+            figs[f"frame {f}, {cam}: kept (solid) and filtered (dashed) detections"] = fig_frame_overlay(
+                out / "figures" / name, fr["image"], dets, title=f"frame {f} · {cam}")
+            step(f"figures/{name}")
+        for caption, p in (extra.get("images") or {}).items():
+            figs[str(caption)] = Path(p)
+        for k, p in figs.items():
+            paths[f"figure:{k}"] = p
+        files = {k: p for k, p in paths.items() if not k.startswith("figure:")}
+        paths["report.html"] = write_report(
+            out, instances, bev_rgb=bev_rgb, bev_semantic=bev_semantic, mesh_grid=mesh_grid, prob_map=prob_map,
+            grid=grid, geo_origin=geo_origin, metrics=metrics, config=config, detections=detections,
+            figures=figs, files=files, trajectory=trajectory, title=title)
+        step("report.html")
+    except PermissionError as e:
+        raise PavemapError(f"{out}: cannot write outputs ({e.strerror or e}: {e.filename})") from None
+    except OSError as e:
+        raise PavemapError(f"{out}: cannot write outputs ({e.strerror or e})") from None
+    finally:
+        bar.close()
+    return paths
+
+
+__all__ = ["instances_to_geojson", "read_geojson", "to_dataframe", "write_csv", "write_geojson", "write_geotiff",
+           "write_outputs", "write_png", "write_report"]

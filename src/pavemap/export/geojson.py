@@ -1,0 +1,250 @@
+"""Defect instances as an RFC 7946 GeoJSON FeatureCollection.
+
+Two coordinate modes:
+- ``lonlat``: WGS84 longitude, latitude (RFC 7946 proper) when the sequence has a geo origin;
+- ``local``: world x, y metres (SPEC §0) otherwise. RFC 7946 removed the ``crs`` member, so we
+  do not write one; the frame is stated in a ``pavemap`` foreign member (RFC 7946 §6.1), which
+  also carries the geo origin so a reader can go back to world metres exactly.
+
+Exterior rings are counter-clockwise and holes clockwise (RFC 7946 §3.1.6 right-hand rule).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import shapely
+from shapely.geometry import MultiPolygon, Polygon, shape
+from shapely.geometry.polygon import orient
+
+from pavemap.errors import PavemapError
+from pavemap.export.geo import local_tangent, origin_from_dict, origin_to_dict
+from pavemap.io.atomic import atomic_write_json
+from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance, GeoOrigin
+
+FORMAT = "pavemap-defects/1"
+# 1e-8 degree is about 1 mm, like 1e-3 m: well below the 0.1 m mesh resolution
+LONLAT_DECIMALS = 8
+METRE_DECIMALS = 3
+PROPERTY_KEYS = ("id", "cls", "code", "name", "severity", "severity_max", "confidence", "observations",
+                 "probability", "area_m2", "length_m", "priority")
+
+
+def _num(v: object, nd: int = 4) -> float | None:
+    """A JSON-safe rounded float (None for NaN/inf)."""
+    f = float(v)  # type: ignore[arg-type]
+    return round(f, nd) if math.isfinite(f) else None
+
+
+def instance_properties(inst: DefectInstance, geo_origin: GeoOrigin | None = None) -> dict:
+    """The flat property record of one instance (also the CSV row and the report's table row)."""
+    cx, cy = float(inst.centroid[0]), float(inst.centroid[1])
+    props: dict = {
+        "id": int(inst.id),
+        "cls": int(inst.cls),
+        "code": inst.code,
+        "name": inst.name,
+        "severity": _num(inst.severity_mean),
+        "severity_max": _num(inst.severity_max),
+        "confidence": _num(inst.confidence),
+        "observations": int(inst.observations),
+        "probability": _num(inst.probability),
+        "area_m2": _num(inst.area_m2),
+        "length_m": _num(inst.length_m, 3),
+        "priority": str(inst.priority),
+        "x_m": _num(cx, METRE_DECIMALS),
+        "y_m": _num(cy, METRE_DECIMALS),
+    }
+    if geo_origin is not None:
+        lon, lat = local_tangent(geo_origin).to_lonlat(np.array([cx]), np.array([cy]))
+        props["lon"] = _num(lon[0], LONLAT_DECIMALS + 1)
+        props["lat"] = _num(lat[0], LONLAT_DECIMALS + 1)
+    # stage-specific extras (e.g. matched truth id) pass through when JSON-simple and not clashing
+    for k, v in (inst.extra or {}).items():
+        if k in props:
+            continue
+        if isinstance(v, (bool, int, str)) or v is None:
+            props[k] = v
+        elif isinstance(v, (float, np.floating)):
+            props[k] = _num(v)
+        elif isinstance(v, np.integer):
+            props[k] = int(v)
+    return props
+
+
+def _ring(coords: np.ndarray, nd: int) -> list[list[float]] | None:
+    """(N, 2) closed ring -> rounded positions without repeated points; None when degenerate."""
+    r = np.round(np.asarray(coords, dtype=np.float64)[:, :2], nd)
+    keep = np.ones(len(r), dtype=bool)
+    keep[1:] = np.any(r[1:] != r[:-1], axis=1)
+    r = r[keep]
+    if len(r) and np.any(r[0] != r[-1]):
+        r = np.vstack([r, r[:1]])
+    if len(r) < 4:
+        return None
+    return r.tolist()
+
+
+def _polygons(geom: object) -> list[Polygon]:
+    if geom is None or getattr(geom, "is_empty", True):
+        return []
+    if isinstance(geom, Polygon):
+        return [geom]
+    if isinstance(geom, MultiPolygon):
+        return list(geom.geoms)
+    if hasattr(geom, "geoms"):  # GeometryCollection: keep its areal parts
+        return [p for g in geom.geoms for p in _polygons(g)]
+    return []
+
+
+def geometry_to_geojson(geom: object, nd: int) -> dict | None:
+    """A shapely (Multi)Polygon -> a GeoJSON geometry dict with RFC 7946 winding, rounded to ``nd``."""
+    polys = []
+    for p in _polygons(geom):
+        p = orient(p, sign=1.0)  # exterior CCW, interiors CW
+        ext = _ring(np.asarray(p.exterior.coords), nd)
+        if ext is None:
+            continue
+        holes = [h for h in (_ring(np.asarray(i.coords), nd) for i in p.interiors) if h is not None]
+        polys.append([ext, *holes])
+    if not polys:
+        return None
+    if len(polys) == 1:
+        return {"type": "Polygon", "coordinates": polys[0]}
+    return {"type": "MultiPolygon", "coordinates": polys}
+
+
+def _bbox(features: list[dict]) -> list[float] | None:
+    pts = [np.asarray(ring, dtype=np.float64)
+           for f in features if f["geometry"] is not None
+           for poly in ([f["geometry"]["coordinates"]] if f["geometry"]["type"] == "Polygon"
+                        else f["geometry"]["coordinates"])
+           for ring in poly]
+    if not pts:
+        return None
+    a = np.vstack(pts)
+    return [float(a[:, 0].min()), float(a[:, 1].min()), float(a[:, 0].max()), float(a[:, 1].max())]
+
+
+def instances_to_geojson(instances: list[DefectInstance], geo_origin: GeoOrigin | None = None) -> dict:
+    """RFC 7946 FeatureCollection dict of ``instances`` (lon/lat when ``geo_origin`` is given)."""
+    lt = local_tangent(geo_origin) if geo_origin is not None else None
+    nd = LONLAT_DECIMALS if lt is not None else METRE_DECIMALS
+    features = []
+    for inst in instances:
+        geom = inst.polygon
+        if lt is not None and geom is not None and not geom.is_empty:
+            geom = lt.geometry_to_lonlat(geom)
+        features.append({
+            "type": "Feature",
+            "id": int(inst.id),
+            "geometry": geometry_to_geojson(geom, nd),
+            "properties": instance_properties(inst, geo_origin),
+        })
+    fc: dict = {"type": "FeatureCollection"}
+    bbox = _bbox(features)
+    if bbox is not None:
+        fc["bbox"] = [round(b, nd) for b in bbox]
+    fc["pavemap"] = {
+        "format": FORMAT,
+        "coordinates": "lonlat" if lt is not None else "local",
+        "frame": ("WGS84 longitude, latitude (degrees)" if lt is not None else
+                  "local world frame x, y in metres (SPEC §0); not WGS84"),
+        "units": "degree" if lt is not None else "metre",
+        "geo_origin": origin_to_dict(geo_origin),
+        "count": len(features),
+        "codes": {c: DEFECT_NAMES[c] for c in DEFECT_CODES},
+    }
+    fc["features"] = features
+    return fc
+
+
+def write_geojson(path: str | os.PathLike, instances: list[DefectInstance],
+                  geo_origin: GeoOrigin | None = None) -> Path:
+    """Write ``defects.geojson`` atomically; returns its path."""
+    return atomic_write_json(path, instances_to_geojson(instances, geo_origin), indent=None)
+
+
+@dataclass
+class DefectLayer:
+    """A defects.geojson read back: geometries in world metres plus their properties."""
+
+    path: Path
+    geometries: list[object]  # shapely geometries, world x, y metres (may be None)
+    properties: list[dict]
+    geo_origin: GeoOrigin | None = None
+    coordinates: str = "local"  # "local" | "lonlat" as written in the file
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.properties)
+
+
+def _origin_for_lonlat(features: list, p: Path) -> GeoOrigin | None:
+    pts = []
+    for f in features:
+        g = f.get("geometry") if isinstance(f, dict) else None
+        if g:
+            try:
+                pts.append(np.asarray(shape(g).bounds, dtype=np.float64).reshape(2, 2))
+            except (ValueError, TypeError, AttributeError, KeyError, shapely.errors.GEOSException):
+                continue
+    if not pts:
+        return None
+    a = np.vstack(pts)
+    lon, lat = (a.min(0) + a.max(0)) / 2
+    return origin_from_dict({"lat": float(lat), "lon": float(lon)}, where=f"{p}: coordinates")
+
+
+def read_geojson(path: str | os.PathLike) -> DefectLayer:
+    """Read a pavemap defects GeoJSON (or any Polygon FeatureCollection) back into world metres.
+
+    A file without a ``pavemap`` member is taken as local metres (like ``truth/defects.geojson``).
+    A lon/lat file without an origin gets one at its bounding-box centre (heading 90, x east).
+    """
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise PavemapError(f"{p}: file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise PavemapError(f"{p}: not readable JSON ({e})") from None
+    if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection" or not isinstance(
+            doc.get("features"), list):
+        raise PavemapError(f"{p}: not a GeoJSON FeatureCollection")
+    meta = doc.get("pavemap") if isinstance(doc.get("pavemap"), dict) else {}
+    origin = origin_from_dict(meta.get("geo_origin"), where=f"{p}: pavemap.geo_origin")
+    mode = meta.get("coordinates", "lonlat" if origin is not None else "local")
+    if mode not in ("local", "lonlat"):
+        raise PavemapError(f"{p}: pavemap.coordinates must be 'local' or 'lonlat', got {mode!r}")
+    if mode == "lonlat" and origin is None:
+        # lon/lat without an origin (e.g. edited in a GIS): use the bbox centre, x east, y north
+        origin = _origin_for_lonlat(doc["features"], p)
+    lt = local_tangent(origin) if (origin is not None and mode == "lonlat") else None
+    geoms, props = [], []
+    for i, f in enumerate(doc["features"]):
+        if not isinstance(f, dict) or f.get("type") != "Feature":
+            raise PavemapError(f"{p}: feature {i} is not a GeoJSON Feature")
+        g = f.get("geometry")
+        try:
+            geom = shape(g) if g else None
+        except (ValueError, TypeError, AttributeError, KeyError, shapely.errors.GEOSException) as e:
+            raise PavemapError(f"{p}: feature {i} has an invalid geometry ({e})") from None
+        if geom is not None and lt is not None:
+            geom = lt.geometry_from_lonlat(geom)
+        if geom is not None and not geom.is_valid:
+            geom = shapely.make_valid(geom)
+        geoms.append(geom)
+        pr = dict(f.get("properties") or {})
+        pr.setdefault("id", f.get("id", i))
+        props.append(pr)
+    return DefectLayer(p, geoms, props, origin, mode, dict(meta))
+
+
+__all__ = ["FORMAT", "PROPERTY_KEYS", "DefectLayer", "geometry_to_geojson", "instance_properties",
+           "instances_to_geojson", "read_geojson", "write_geojson"]

@@ -1,0 +1,325 @@
+"""``report.html``: one self-contained page a maintenance engineer reads offline.
+
+Everything is inline (images as base64 data URIs, CSS and JS in the page, system fonts), so the
+file can be mailed or archived alone. Contents: summary cards and metrics, a zoomable/pannable
+BEV map (SVG over the BEV RGB image) with the defect polygons (hover shows properties, click
+selects and highlights the table row), the defects table (sortable; priority first), the
+figures, and the run settings.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import io
+import json
+import os
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from pavemap import __version__
+from pavemap.export.figures import CLASS_COLOURS, flatten_metrics, format_value, grid_extent
+from pavemap.export.geojson import _polygons, instance_properties
+from pavemap.export.report_assets import CSS, JS
+from pavemap.export.tables import PRIORITY_RANK
+from pavemap.io.atomic import atomic_write_text
+from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance, GeoOrigin
+
+MAX_IMAGE_SIDE = 2400  # larger BEV images are downsampled for the page (the PNG files keep full size)
+
+
+def _esc(v: object) -> str:
+    return html.escape(str(v), quote=True)
+
+
+def _data_uri(img: np.ndarray, fmt: str = "PNG", quality: int = 88) -> str:
+    """(H, W, 3|4) uint8 -> a data URI; large images are downsampled by an integer stride."""
+    from PIL import Image
+
+    a = np.asarray(img)
+    step = int(np.ceil(max(a.shape[0], a.shape[1]) / MAX_IMAGE_SIDE))
+    if step > 1:
+        a = a[::step, ::step]
+    im = Image.fromarray(np.ascontiguousarray(a))
+    buf = io.BytesIO()
+    if fmt == "JPEG":
+        im.convert("RGB").save(buf, format="JPEG", quality=quality)
+        mime = "image/jpeg"
+    else:
+        im.save(buf, format="PNG", optimize=False)
+        mime = "image/png"
+    return f"data:{mime};base64,{base64.b64encode(buf.getvalue()).decode('ascii')}"
+
+
+def _file_uri(path: Path) -> str:
+    return f"data:image/png;base64,{base64.b64encode(Path(path).read_bytes()).decode('ascii')}"
+
+
+def _prob_rgba(prob_map: np.ndarray) -> np.ndarray:
+    """(H, W) probability -> (H, W, 4) uint8 heat layer, transparent where ~0, rows flipped north-up."""
+    from matplotlib import colormaps
+
+    p = np.clip(np.nan_to_num(np.asarray(prob_map, dtype=np.float32)), 0.0, 1.0)
+    rgba = colormaps["inferno"](0.25 + 0.75 * p)  # (H, W, 4) float
+    rgba[..., 3] = np.where(p < 0.02, 0.0, np.clip(0.25 + p, 0.0, 0.9))
+    return (rgba[::-1] * 255).astype(np.uint8)
+
+
+def _svg_path(geom: object) -> str:
+    """SVG path data of a (Multi)Polygon in map coordinates (x, -y), holes with evenodd fill."""
+    parts = []
+    for p in _polygons(geom):
+        for ring in (p.exterior, *p.interiors):
+            c = np.asarray(ring.coords, dtype=np.float64)[:, :2]
+            if len(c) < 3:
+                continue
+            pts = " ".join(f"{x:.3f} {-y:.3f}" for x, y in c[:-1])
+            parts.append(f"M{pts}Z")
+    return "".join(parts)
+
+
+def _image_el(el_id: str, uri: str, grid: dict, hidden: bool = False) -> str:
+    x0, x1, y0, y1 = grid_extent(grid)
+    cls = ' class="hidden"' if hidden else ""
+    return (f'<image id="{el_id}"{cls} href="{uri}" x="{x0:.4f}" y="{-y1:.4f}" width="{x1 - x0:.4f}" '
+            f'height="{y1 - y0:.4f}" preserveAspectRatio="none" style="image-rendering:pixelated"/>')
+
+
+def _detection_summary(detections: list[dict] | None) -> dict:
+    if detections is None:
+        return {}
+    kept = [d for d in detections if d.get("kept", True)]
+    reasons = Counter(str(d.get("reason") or "filtered") for d in detections if not d.get("kept", True))
+    return {"total": len(detections), "kept": len(kept), "filtered": len(detections) - len(kept),
+            "mapped": sum(bool(d.get("mapped")) for d in kept), "reasons": dict(reasons)}
+
+
+def _no_defects_message(det: dict) -> str:
+    msg = "No defects were mapped in this run."
+    if not det:
+        return msg
+    if det["total"] == 0:
+        return msg + " The detector reported no detections at all, so there was nothing to map."
+    if det["kept"] == 0:
+        why = ", ".join(f"{n} {r}" for r, n in sorted(det["reasons"].items()))
+        return msg + f" All {det['total']} detections were filtered out ({why})."
+    return msg + (f" {det['kept']} of {det['total']} detections passed the road filter and {det['mapped']} were "
+                  "mapped onto the road surface, but no area met the defect thresholds.")
+
+
+def _kv_table(rows: list[tuple[str, str]], head: tuple[str, str] | None = None) -> str:
+    h = f"<tr><th>{_esc(head[0])}</th><th>{_esc(head[1])}</th></tr>" if head else ""
+    body = "".join(f'<tr><td>{_esc(k)}</td><td class="num">{_esc(v)}</td></tr>' for k, v in rows)
+    return f'<table class="kv">{h}{body}</table>'
+
+
+TABLE_COLUMNS = (  # key, header, type ("num" | "str"), decimals
+    ("id", "id", "num", None), ("code", "class", "str", None), ("priority", "priority", "num", None),
+    ("severity", "severity", "num", 3), ("severity_max", "sev. max", "num", 3), ("confidence", "conf.", "num", 2),
+    ("observations", "obs.", "num", None), ("probability", "prob.", "num", 2), ("area_m2", "area m²", "num", 3),
+    ("length_m", "length m", "num", 2), ("x_m", "x m", "num", 2), ("y_m", "y m", "num", 2),
+)
+
+
+def _table_rows(props: list[dict], geo: bool) -> tuple[str, str]:
+    cols = list(TABLE_COLUMNS) + ([("lat", "lat", "num", 7), ("lon", "lon", "num", 7)] if geo else [])
+    head = "".join(f'<th data-key="{k}" data-type="{t}">{_esc(h)}<span class="arrow"></span></th>'
+                   for k, h, t, _ in cols)
+    order = sorted(props, key=lambda p: (PRIORITY_RANK.get(p["priority"], 9), -(p["severity"] or 0), p["id"]))
+    rows = []
+    for p in order:
+        cells = []
+        for k, _, _t, nd in cols:
+            v = p.get(k)
+            if k == "priority":
+                slug = str(v).replace(" ", "-")
+                cells.append(f'<td data-v="{PRIORITY_RANK.get(v, 9)}"><span class="pill {_esc(slug)}">'
+                             f"{_esc(v)}</span></td>")
+            elif k == "code":
+                cells.append(f'<td data-v="{_esc(v)}"><span class="sw" style="background:{CLASS_COLOURS[v]}">'
+                             f'</span>{_esc(v)} <span style="color:#5c6677">{_esc(p["name"])}</span></td>')
+            else:
+                txt = "–" if v is None else (f"{v:.{nd}f}" if nd is not None else str(v))
+                sv = "NaN" if v is None else v
+                cells.append(f'<td class="num" data-v="{_esc(sv)}">{_esc(txt)}</td>')
+        rows.append(f'<tr data-id="{p["id"]}" data-code-of="{_esc(p["code"])}">{"".join(cells)}</tr>')
+    return head, "".join(rows)
+
+
+def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | None = None,
+                      bev_semantic: np.ndarray | None = None, mesh_grid: dict | None = None,
+                      prob_map: np.ndarray | None = None, grid: dict | None = None,
+                      geo_origin: GeoOrigin | None = None, metrics: dict | None = None,
+                      config: dict | None = None, detections: list[dict] | None = None,
+                      figures: dict[str, Path] | None = None, files: dict[str, Path] | None = None,
+                      trajectory: np.ndarray | None = None, title: str = "pavemap defect report",
+                      subtitle: str = "") -> str:
+    """The report page as a string (see ``write_report``)."""
+    props = [instance_properties(i, geo_origin) for i in instances]
+    for p, inst in zip(props, instances, strict=True):
+        g = inst.polygon
+        p["bbox"] = [round(float(v), 3) for v in g.bounds] if g is not None and not g.is_empty else None
+    det = _detection_summary(detections)
+
+    # ---- summary cards
+    prio = Counter(p["priority"] for p in props)
+    area = sum(p["area_m2"] or 0.0 for p in props)
+    length = sum(p["length_m"] or 0.0 for p in props)
+    cards = [("", len(props), "defects"), ("repair", prio.get("repair now", 0), "repair now"),
+             ("inspect", prio.get("inspect", 0), "inspect"), ("none", prio.get("no action", 0), "no action"),
+             ("", f"{area:.2f} m²", "total defect area"), ("", f"{length:.1f} m", "total crack length")]
+    if det:
+        cards.append(("", f"{det['kept']}/{det['total']}", "detections kept"))
+    flat = flatten_metrics(metrics)
+    for key in ("timing.total_s", "total_s", "seconds.total"):
+        if key in flat:
+            cards.append(("", f"{float(flat[key]):.1f} s", "run time"))
+            break
+    ids = [' id="defect-count"'] + [""] * (len(cards) - 1)
+    cards_html = "".join(f'<div class="card {c}"><div class="v"{ident}>{_esc(v)}</div><div class="k">{_esc(k)}</div>'
+                         "</div>" for ident, (c, v, k) in zip(ids, cards, strict=True))
+    notice = "" if props else f'<div class="notice" id="no-defects">{_esc(_no_defects_message(det))}</div>'
+    per_class = [(f"{c} {DEFECT_NAMES[c]}", str(sum(p["code"] == c for p in props))) for c in DEFECT_CODES]
+    det_rows = []
+    if det:
+        det_rows = [("detections", str(det["total"])), ("kept by the road filter", str(det["kept"])),
+                    ("filtered", str(det["filtered"])), ("mapped onto the mesh", str(det["mapped"]))]
+        det_rows += [(f"filtered: {r}", str(n)) for r, n in sorted(det["reasons"].items())]
+    # metrics grouped by their top-level key (e.g. paper / eval / timing), one small table each
+    groups: dict[str, list[tuple[str, str]]] = {}
+    for k, v in flat.items():
+        head_key, _, rest = k.partition(".")
+        groups.setdefault(head_key if rest else "metrics", []).append((rest or k, format_value(v)))
+    summary_tables = _kv_table(per_class, ("class", "instances"))
+    if det_rows:
+        summary_tables += _kv_table(det_rows, ("detections", "count"))
+    for g, rows_ in groups.items():
+        summary_tables += _kv_table(rows_, (g, "value"))
+
+    # ---- map
+    layers, extents = [], []
+    if bev_rgb is not None and mesh_grid is not None:
+        layers.append(_image_el("layer-rgb", _data_uri(np.asarray(bev_rgb)[::-1], "JPEG"), mesh_grid))
+        extents.append(grid_extent(mesh_grid))
+    if bev_semantic is not None and mesh_grid is not None:
+        layers.append(_image_el("layer-sem", _data_uri(np.asarray(bev_semantic)[::-1], "PNG"), mesh_grid,
+                                hidden=bev_rgb is not None))
+        extents.append(grid_extent(mesh_grid))
+    if prob_map is not None and grid is not None:
+        layers.append(_image_el("layer-prob", _data_uri(_prob_rgba(prob_map), "PNG"), grid, hidden=True))
+        extents.append(grid_extent(grid))
+    traj_el = ""
+    if trajectory is not None and len(trajectory) > 1:
+        t = np.asarray(trajectory, dtype=np.float64)
+        traj_el = ('<polyline id="layer-traj" class="traj" points="'
+                   + " ".join(f"{x:.2f},{-y:.2f}" for x, y in t[:, :2]) + '"/>')
+    shapes, markers = [], []
+    for p, inst in zip(props, instances, strict=True):
+        d = _svg_path(inst.polygon)
+        col = CLASS_COLOURS[p["code"]]
+        attrs = f'data-id="{p["id"]}" data-code-of="{p["code"]}" fill="{col}"'
+        if d:
+            shapes.append(f'<path class="d" d="{d}" fill-rule="evenodd" {attrs}><title>#{p["id"]} {p["code"]}'
+                          f"</title></path>")
+        cx, cy = p["x_m"] or 0.0, p["y_m"] or 0.0
+        markers.append(f'<circle class="mk" cx="{cx:.3f}" cy="{-cy:.3f}" r="0.5" {attrs}/>')
+    for p in props:
+        if p["bbox"] is not None:
+            extents.append([p["bbox"][0], p["bbox"][2], p["bbox"][1], p["bbox"][3]])
+    if extents:
+        e = np.array(extents, dtype=np.float64)
+        xmin, xmax, ymin, ymax = e[:, 0].min(), e[:, 1].max(), e[:, 2].min(), e[:, 3].max()
+    else:
+        xmin, xmax, ymin, ymax = -10.0, 10.0, -10.0, 10.0
+    pad = 0.02 * max(xmax - xmin, ymax - ymin, 1.0)
+    view = [round(float(v), 3) for v in (xmin - pad, -ymax - pad, xmax - xmin + 2 * pad, ymax - ymin + 2 * pad)]
+    svg = (f'<svg id="map" viewBox="{" ".join(map(str, view))}" '
+           f'preserveAspectRatio="xMidYMid meet">{"".join(layers)}{traj_el}<g id="defect-shapes">{"".join(shapes)}'
+           f'</g><g id="defect-markers">{"".join(markers)}</g></svg>')
+    compass = ""
+    if geo_origin is not None:
+        # north in world coordinates is (cos h, sin h); on screen y is flipped
+        h = np.radians(float(geo_origin.heading_deg))
+        ang = float(np.degrees(np.arctan2(np.cos(h), np.sin(h))))  # screen angle from up, clockwise
+        compass = (f'<div id="compass" title="north"><div style="transform:rotate({ang:.1f}deg)">▲<br>N</div></div>')
+    layer_boxes = []
+    for el_id, label, on in (("layer-rgb", "BEV RGB", bev_rgb is not None),
+                             ("layer-sem", "semantics", bev_rgb is None and bev_semantic is not None),
+                             ("layer-prob", "probability", False), ("layer-traj", "trajectory", True),
+                             ("defect-shapes", "polygons", True), ("defect-markers", "markers", True)):
+        if el_id in svg:
+            chk = " checked" if on else ""
+            layer_boxes.append(f'<label><input type="checkbox" data-layer="{el_id}"{chk}> {label}</label>')
+    class_boxes = "".join(
+        f'<label><input type="checkbox" data-code="{c}" checked> <span class="sw" '
+        f'style="background:{CLASS_COLOURS[c]}"></span>{c} {DEFECT_NAMES[c]}</label>' for c in DEFECT_CODES)
+    head, rows = _table_rows(props, geo_origin is not None)
+
+    # ---- figures, settings, files
+    figs = "".join(f'<figure><img alt="{_esc(name)}" src="{_file_uri(path)}"><figcaption>{_esc(name)}'
+                   "</figcaption></figure>" for name, path in (figures or {}).items() if Path(path).is_file())
+    cfg_flat = flatten_metrics(config)
+    settings = _kv_table([(k, format_value(v)) for k, v in cfg_flat.items()], ("setting", "value")) if cfg_flat \
+        else "<p>No settings recorded.</p>"
+    cfg_json = _esc(json.dumps(config or {}, indent=2, default=str))
+    geo_txt = ("local world metres (no geo origin)" if geo_origin is None else
+               f"WGS84 via origin {geo_origin.lat:.7f}, {geo_origin.lon:.7f}, heading {geo_origin.heading_deg:g}°")
+    file_list = "".join(f'<li><a href="{_esc(Path(p).name)}">{_esc(Path(p).name)}</a> — {_esc(k)}</li>'
+                        for k, p in (files or {}).items())
+    files_html = f"<ul>{file_list}</ul>" if file_list else ""
+
+    data = {"defects": props, "view": view, "geo": geo_origin is not None}
+    data_json = json.dumps(data, allow_nan=False, separators=(",", ":")).replace("</", "<\\/")
+    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    sub = subtitle or f"{len(props)} defect instances · coordinates: {geo_txt}"
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<link rel="icon" href="data:,">
+<title>{_esc(title)}</title>
+<style>{CSS}</style></head>
+<body>
+<header><h1>{_esc(title)}</h1><div class="sub">{_esc(sub)}</div></header>
+<main>
+<section id="summary"><h2>Summary</h2><div class="cards">{cards_html}</div>{notice}
+<div class="kvgrid">{summary_tables}</div></section>
+<div class="split">
+<section id="map-section"><h2>Defect map</h2>
+<div class="toolbar"><button id="zoom-in" title="zoom in">+</button><button id="zoom-out" title="zoom out">−</button>
+<button id="zoom-home" title="fit the whole map">fit</button>{"".join(layer_boxes)}</div>
+<div class="toolbar">{class_boxes}</div>
+<div id="map-wrap">{svg}<div id="tooltip" hidden></div><div id="scalebar"></div>{compass}
+<div id="maphelp">wheel: zoom · drag: pan · click: select</div></div>
+<div id="selected"></div></section>
+<section id="defects-section"><h2>Defects (<span id="shown-count">{len(props)}</span> shown of
+{len(props)}; sorted by priority — click a header to sort)</h2>
+{'<p>No defects to list.</p>' if not props else ''}
+<div class="tablewrap"><table id="defects"><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table></div>
+</section></div>
+{f'<section id="figures"><h2>Figures</h2><div class="figs">{figs}</div></section>' if figs else ''}
+<section id="settings"><h2>Run settings</h2><p>Coordinates: {_esc(geo_txt)}.</p>{settings}
+<details><summary>resolved configuration (JSON)</summary><pre>{cfg_json}</pre></details>
+{f'<h2 style="margin-top:12px">Files</h2>{files_html}' if files_html else ''}</section>
+</main>
+<footer>pavemap {_esc(__version__)} · generated {_esc(now)} · self-contained, works offline</footer>
+<script id="pavemap-data" type="application/json">{data_json}</script>
+<script>{JS}</script>
+</body></html>
+"""
+
+
+def write_report(out_dir: str | os.PathLike, instances: list[DefectInstance], **kwargs) -> Path:
+    """Write ``out_dir/report.html`` atomically and return its path.
+
+    Keyword arguments as ``build_report_html``: bev_rgb (ny, nx, 3) uint8 and bev_semantic on mesh_grid,
+    prob_map (H, W) on grid, geo_origin, metrics, config, detections (records with kept/reason/mapped),
+    figures {caption: png path}, files {description: path}, trajectory (F, 2|3), title, subtitle.
+    """
+    path = Path(out_dir) / "report.html"
+    return atomic_write_text(path, build_report_html(instances, **kwargs))
+
+
+__all__ = ["build_report_html", "write_report"]

@@ -1,0 +1,139 @@
+"""Defect instances: connected components of defect vertices -> polygons with statistics (SPEC §3).
+
+Each vertex stands for its grid cell (a square of side ``r`` centred on it), so an instance's
+polygon is the union of its vertices' cells (traced by rasterio's polygoniser, 8-connected), its
+area is ``count * r^2`` and its length is the extent along the component's principal axis.
+All per-component statistics are bincount / scatter reductions over the labelled vertices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from affine import Affine
+from rasterio.features import shapes
+from scipy import ndimage
+from shapely.geometry import MultiPolygon, Polygon, shape
+from shapely.ops import unary_union
+
+from pavemap.types import NUM_DEFECT_CLASSES, DefectInstance
+
+PRIORITY_BANDS = ((0.7, "repair now"), (0.4, "inspect"), (0.0, "no action"))
+
+
+def priority(p: float) -> str:
+    """SPEC §3 bands: 0.7-1.0 repair now, 0.4-0.7 inspect, below 0.4 no action."""
+    for lo, name in PRIORITY_BANDS:
+        if p >= lo:
+            return name
+    return "no action"
+
+
+def label_components(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """(ny, nx) bool -> (labels (ny, nx) int32, 0 = background, 1..K 8-connected components; K)."""
+    labels, k = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
+    return labels.astype(np.int32), int(k)
+
+
+def component_polygons(labels: np.ndarray, k: int, x0: float, y0: float, res: float) -> list:
+    """Polygon (world metres) of each component 1..k: the union of its vertices' cells."""
+    transform = Affine(res, 0.0, x0 - res / 2, 0.0, res, y0 - res / 2)
+    parts: list[list[Polygon]] = [[] for _ in range(k + 1)]
+    for geom, value in shapes(labels, mask=labels > 0, connectivity=8, transform=transform):
+        parts[int(value)].append(shape(geom))
+    polys = []
+    for lab in range(1, k + 1):
+        p = parts[lab][0] if len(parts[lab]) == 1 else unary_union(parts[lab])
+        if not p.is_valid:
+            p = p.buffer(0)
+        polys.append(p)
+    return polys
+
+
+def principal_extent(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: int, res: float) -> np.ndarray:
+    """Extent (k,) in metres of each component along its principal axis (vertex spread + one cell)."""
+    cnt = np.bincount(labels_flat, minlength=k + 1).astype(np.float64)
+    safe = np.maximum(cnt, 1)
+    mx = np.bincount(labels_flat, x, k + 1) / safe
+    my = np.bincount(labels_flat, y, k + 1) / safe
+    dx, dy = x - mx[labels_flat], y - my[labels_flat]
+    sxx = np.bincount(labels_flat, dx * dx, k + 1)
+    syy = np.bincount(labels_flat, dy * dy, k + 1)
+    sxy = np.bincount(labels_flat, dx * dy, k + 1)
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # principal axis angle of the 2x2 covariance
+    t = dx * np.cos(theta)[labels_flat] + dy * np.sin(theta)[labels_flat]
+    hi = np.full(k + 1, -np.inf)
+    lo = np.full(k + 1, np.inf)
+    np.maximum.at(hi, labels_flat, t)
+    np.minimum.at(lo, labels_flat, t)
+    return (hi - lo + res)[1:]
+
+
+def build_instances(
+    defect: np.ndarray, prob: np.ndarray, counts: np.ndarray, sev: np.ndarray, conf: np.ndarray,
+    pair_det: np.ndarray, pair_vid: np.ndarray, x0: float, y0: float, res: float, min_obs: int = 1,
+) -> tuple[list[DefectInstance], np.ndarray]:
+    """Instances from the defect-vertex mask.
+
+    defect (ny, nx) bool; prob, sev, conf (ny, nx); counts (ny, nx, 4); pair_det / pair_vid (P,)
+    the (detection, vertex) associations (for the distinct-detection count ``observations``).
+    Components seen by fewer than ``min_obs`` distinct detections are dropped.
+    Returns the instances (ids 1..K in order) and the (ny, nx) int32 label image of the kept ones.
+    """
+    ny, nx = defect.shape
+    labels, k = label_components(defect)
+    if k == 0:
+        return [], labels
+    lab = labels.reshape(-1)
+    sel = np.nonzero(lab)[0]
+    L = lab[sel]
+    jj, ii = np.divmod(sel, nx)
+    x, y = x0 + ii * res, y0 + jj * res
+    cnt = np.bincount(L, minlength=k + 1)
+    # Distinct detections per component.
+    pl = lab[pair_vid] if len(pair_vid) else np.zeros(0, dtype=np.int64)
+    m = pl > 0
+    uniq = np.unique(np.stack([pair_det[m], pl[m]], 1), axis=0) if m.any() else np.zeros((0, 2), np.int64)
+    n_det = np.bincount(uniq[:, 1], minlength=k + 1) if len(uniq) else np.zeros(k + 1, np.int64)
+    keep = n_det >= min_obs
+    keep[0] = False
+    if not keep[1:].any():
+        return [], np.zeros_like(labels)
+    # Relabel the kept components 1..K' so ids are dense.
+    new = np.zeros(k + 1, dtype=np.int32)
+    new[keep] = np.arange(1, int(keep.sum()) + 1, dtype=np.int32)
+    labels = new[labels]
+    k2 = int(keep.sum())
+    old_ids = np.nonzero(keep)[0]
+    lab2 = labels.reshape(-1)[sel]
+    in_kept = lab2 > 0
+    sel, L2, x, y = sel[in_kept], lab2[in_kept], x[in_kept], y[in_kept]
+    cnt = cnt[old_ids]
+    cls_counts = np.stack([np.bincount(L2, counts.reshape(-1, NUM_DEFECT_CLASSES)[sel, c], k2 + 1)
+                           for c in range(NUM_DEFECT_CLASSES)], 1)[1:]
+    sev_f, conf_f, prob_f = sev.reshape(-1)[sel], conf.reshape(-1)[sel], prob.reshape(-1)[sel]
+    sev_mean = np.bincount(L2, sev_f, k2 + 1)[1:] / cnt
+    sev_max = np.zeros(k2 + 1)
+    np.maximum.at(sev_max, L2, sev_f)
+    conf_max = np.zeros(k2 + 1)
+    np.maximum.at(conf_max, L2, conf_f)
+    prob_max = np.zeros(k2 + 1)
+    np.maximum.at(prob_max, L2, prob_f)
+    cx = np.bincount(L2, x, k2 + 1)[1:] / cnt
+    cy = np.bincount(L2, y, k2 + 1)[1:] / cnt
+    length = principal_extent(L2, x, y, k2, res)
+    polys = component_polygons(labels, k2, x0, y0, res)
+    n_obs = n_det[old_ids]
+    out = []
+    for t in range(k2):
+        cls = int(np.argmax(cls_counts[t]))
+        poly = polys[t]
+        out.append(DefectInstance(
+            id=t + 1, cls=cls, polygon=poly if isinstance(poly, Polygon | MultiPolygon) else poly,
+            severity_mean=float(sev_mean[t]), severity_max=float(sev_max[t + 1]),
+            confidence=float(conf_max[t + 1]), observations=int(n_obs[t]), probability=float(prob_max[t + 1]),
+            area_m2=float(cnt[t] * res * res), length_m=float(length[t]),
+            centroid=(float(cx[t]), float(cy[t])), priority=priority(float(prob_max[t + 1])),
+            extra={"vertices": int(cnt[t]), "vertex_observations": int(cls_counts[t].sum()),
+                   "class_votes": [int(v) for v in cls_counts[t]]},
+        ))
+    return out, labels

@@ -1,0 +1,80 @@
+"""Stage-1 configuration (SPEC §1) with the nuScenes-like and KITTI-like presets."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from pavemap.errors import PavemapError
+
+PRESETS = ("nuscenes", "kitti")
+
+
+@dataclass
+class MeshConfig:
+    """Everything stage 1 needs; the defaults are the SPEC's (paper / RoMe) values.
+
+    Speed knobs (ours, not the paper's): training renders at ``render_scale`` of the image size and
+    samples ``pixels_per_step`` pixels per optimizer step from all training views; one epoch visits
+    ``pixel_fraction`` of all usable pixels at that scale once.
+    """
+
+    resolution: float = 0.1  # m per cell
+    crop_m: float = 7.0  # keep vertices within this distance of the camera trajectory
+    pe_levels: int = 5  # L of the positional encoding (5 nuScenes, 4 KITTI)
+    hidden: int = 128
+    epochs: int = 7
+    lr_rgb: float = 0.1
+    lr_sem: float = 0.1
+    lr_height: float = 0.001
+    lr_pose: float = 0.001
+    w_rgb: float = 1.0
+    w_sem: float = 0.5
+    w_depth: float = 1.0  # lambda_depth, used only where depth maps exist
+    w_smooth: float = 1.0
+    render_scale: float = 0.25  # training image scale
+    eval_scale: float = 0.25  # held-out evaluation image scale
+    pixels_per_step: int = 16384
+    pixel_fraction: float = 1.0
+    frame_stride: int = 1
+    holdout_every: int = 10  # every k-th frame is held out for metrics (0: none)
+    seed: int = 0
+    device: str = "auto"
+    pose_refine: bool = False
+    camera_height: float = 1.5  # initial road plane below the median camera centre (m)
+    init_height_search: bool = True  # refine the initial plane height by multi-view colour agreement
+    max_dist: float = 80.0  # longest ray considered (m)
+    smooth_edges_per_step: int = 8192  # edges sampled per step for the Laplacian term
+    height_refresh_steps: int = 16  # steps between full-grid height re-evaluations used by the march
+    resume: bool = True  # continue from DIR/checkpoint.pt when it matches
+    max_bad_steps: int = 20  # consecutive non-finite steps before giving up
+
+    @classmethod
+    def preset(cls, name: str) -> MeshConfig:
+        """``nuscenes``: crop 7 m, L=5; ``kitti``: crop 5 m, L=4 (RoMe's settings)."""
+        if name == "nuscenes":
+            return cls(crop_m=7.0, pe_levels=5)
+        if name == "kitti":
+            return cls(crop_m=5.0, pe_levels=4)
+        raise PavemapError(f"unknown mesh preset {name!r}; choose one of {', '.join(PRESETS)}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MeshConfig:
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+    def validate(self) -> None:
+        """Raise PavemapError on values that cannot work."""
+        positive = ("resolution", "crop_m", "render_scale", "eval_scale", "max_dist", "pixel_fraction")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise PavemapError(f"mesh config: {name} must be positive, got {getattr(self, name)}")
+        for name in ("epochs", "holdout_every", "pe_levels"):
+            if getattr(self, name) < 0:
+                raise PavemapError(f"mesh config: {name} must be >= 0, got {getattr(self, name)}")
+        if self.frame_stride < 1 or self.pixels_per_step < 1 or self.hidden < 1:
+            raise PavemapError("mesh config: frame_stride, pixels_per_step and hidden must be >= 1")
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise PavemapError(f"mesh config: device must be auto, cpu or cuda, got {self.device!r}")

@@ -1,0 +1,141 @@
+"""Pixels of a sequence's views as flat tensors (the training / evaluation pool of stage 1)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from PIL import Image
+
+from pavemap.io.sequence import load_depth, load_rgb, load_semantics
+from pavemap.types import Sequence, View
+
+
+@dataclass
+class ViewKey:
+    frame: int
+    camera: str
+
+
+@dataclass
+class PixelPool:
+    """Usable pixels of a set of views at one image scale.
+
+    keys: the views; Kinv (V, 3, 3) float32 inverse intrinsics at that scale; T (V, 4, 4) float32
+    camera-to-world. Per pixel (P,): view long, uv (P, 2) float32 pixel centres, rgb (P, 3) uint8,
+    channel long (semantic channel, -1 unknown), road bool (ground-truth road class), depth (P,)
+    float32 metres (0 unknown) or None. Only pixels kept by the loss mask (not movable, not sky) are
+    stored.
+    """
+
+    keys: list[ViewKey]
+    Kinv: torch.Tensor
+    T: torch.Tensor
+    view: torch.Tensor
+    uv: torch.Tensor
+    rgb: torch.Tensor
+    channel: torch.Tensor
+    road: torch.Tensor
+    depth: torch.Tensor | None
+
+    def __len__(self) -> int:
+        return int(self.view.numel())
+
+    def to(self, device: torch.device) -> PixelPool:
+        f = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return PixelPool(self.keys, f(self.Kinv), f(self.T), f(self.view), f(self.uv), f(self.rgb),
+                         f(self.channel), f(self.road), f(self.depth))
+
+    def subset(self, keep: torch.Tensor) -> PixelPool:
+        d = None if self.depth is None else self.depth[keep]
+        return PixelPool(self.keys, self.Kinv, self.T, self.view[keep], self.uv[keep], self.rgb[keep],
+                         self.channel[keep], self.road[keep], d)
+
+
+def _resize(a: np.ndarray, size: tuple[int, int], nearest: bool) -> np.ndarray:
+    if a.shape[1] == size[0] and a.shape[0] == size[1]:
+        return a
+    if nearest:
+        # Pick the source pixel under each target pixel centre (keeps labels and sparse depth exact).
+        h, w = a.shape[:2]
+        ys = np.minimum(((np.arange(size[1]) + 0.5) * h / size[1]).astype(np.int64), h - 1)
+        xs = np.minimum(((np.arange(size[0]) + 0.5) * w / size[0]).astype(np.int64), w - 1)
+        return a[ys][:, xs]
+    return np.asarray(Image.fromarray(a).resize(size, Image.Resampling.BOX))
+
+
+def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, channel_lut: np.ndarray,
+               use_semantics: bool, use_depth: bool) -> PixelPool:
+    """Load, resize and flatten views. channel_lut (256,) int: class id -> semantic channel (-1 unknown)."""
+    movable, sky, road = seq.class_lut("movable"), seq.class_lut("sky"), seq.class_lut("road")
+    keys, Kinv, T = [], [], []
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("view", "uv", "rgb", "ch", "road", "depth")}
+    for vi, (frame_index, v) in enumerate(views):
+        cam = seq.cameras[v.camera].scaled(scale)
+        size = (cam.width, cam.height)
+        rgb = _resize(load_rgb(seq.path(v.image)), size, nearest=False)
+        if use_semantics and v.semantics:
+            lab = _resize(load_semantics(seq.path(v.semantics)), size, nearest=True)
+            keep = ~(movable[lab] | sky[lab])
+            ch = channel_lut[lab]
+            rd = road[lab]
+        else:
+            keep = np.ones(size[::-1], dtype=bool)
+            ch = np.full(size[::-1], -1, dtype=np.int64)
+            rd = np.ones(size[::-1], dtype=bool)  # without semantics the mesh footprint is the road
+        if use_depth and v.depth:
+            dep = _resize(load_depth(seq.path(v.depth)), size, nearest=True)
+        else:
+            dep = np.zeros(size[::-1], dtype=np.float32)
+        yy, xx = np.nonzero(keep)
+        keys.append(ViewKey(frame_index, v.camera))
+        Kinv.append(np.linalg.inv(cam.K))
+        T.append(v.T_world_cam)
+        cols["view"].append(np.full(yy.size, vi, dtype=np.int64))
+        cols["uv"].append(np.stack([xx, yy], 1).astype(np.float32))
+        cols["rgb"].append(rgb[yy, xx])
+        cols["ch"].append(ch[yy, xx].astype(np.int64))
+        cols["road"].append(rd[yy, xx])
+        cols["depth"].append(dep[yy, xx].astype(np.float32))
+    cat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in cols.items()}
+    has_depth = use_depth and any(v.depth for _, v in views)
+    return PixelPool(
+        keys,
+        torch.tensor(np.array(Kinv), dtype=torch.float32).reshape(-1, 3, 3),
+        torch.tensor(np.array(T), dtype=torch.float32).reshape(-1, 4, 4),
+        torch.from_numpy(cat["view"].astype(np.int64)),
+        torch.from_numpy(cat["uv"].astype(np.float32).reshape(-1, 2)),
+        torch.from_numpy(cat["rgb"].astype(np.uint8).reshape(-1, 3)),
+        torch.from_numpy(cat["ch"].astype(np.int64)),
+        torch.from_numpy(cat["road"].astype(bool)),
+        torch.from_numpy(cat["depth"].astype(np.float32)) if has_depth else None,
+    )
+
+
+def split_frames(n_frames: int, holdout_every: int, stride: int) -> tuple[list[int], list[int]]:
+    """Positions of training and held-out frames. Every k-th frame (positions k//2, k//2 + k, ...) is
+    held out; training takes every ``stride``-th of the rest. Fewer than 2 frames: nothing held out."""
+    pos = list(range(n_frames))
+    if holdout_every > 0 and n_frames >= 2:
+        k = holdout_every
+        held = [p for p in pos if p % k == k // 2] if k > 1 else pos[1::2]
+    else:
+        held = []
+    rest = [p for p in pos if p not in set(held)]
+    return rest[::stride], held
+
+
+def finite_views(seq: Sequence, positions: list[int]) -> tuple[list[tuple[int, View]], int]:
+    """Views of the frames at ``positions`` whose pose is finite; also the number dropped."""
+    out, dropped = [], 0
+    for p in positions:
+        f = seq.frames[p]
+        for v in f.views.values():
+            T = np.asarray(v.T_world_cam, dtype=np.float64)
+            if T.shape == (4, 4) and np.all(np.isfinite(T)) and math.isfinite(float(np.linalg.det(T[:3, :3]))):
+                out.append((f.index, v))
+            else:
+                dropped += 1
+    return out, dropped

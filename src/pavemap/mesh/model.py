@@ -1,0 +1,190 @@
+"""The BEV grid, its trajectory crop, and the learnable vertex attributes (SPEC §1).
+
+Height ``z_i = z_base + MLP1([Phi(p_i); MLP0(Phi(p_i))])`` with ``p_i`` the vertex x, y normalised to
+[-1, 1]^2 over the grid. ``z_base`` is a fixed offset (the initial road plane) so that the MLP, which
+starts near 0, only learns the road's relief; it is part of the model, so the outputs carry no hidden
+offset. RGB (init N(0, 0.01)) and semantic logits (init 0) are per-vertex tensors over the kept
+(valid) vertices only, in the compact order of ``torch.nonzero(valid.reshape(-1))``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy import ndimage
+from torch import nn
+
+from pavemap.geometry import HeightField
+from pavemap.types import SemanticClass
+
+
+@dataclass
+class Grid:
+    """The vertex grid: origin, step, size and the crop mask (ny, nx) bool."""
+
+    x0: float
+    y0: float
+    res: float
+    nx: int
+    ny: int
+    valid: np.ndarray
+
+    @property
+    def vertices(self) -> int:
+        return int(self.valid.sum())
+
+    @property
+    def faces(self) -> int:
+        v = self.valid
+        quad = v[:-1, :-1] & v[1:, 1:]
+        return int((quad & v[:-1, 1:]).sum() + (quad & v[1:, :-1]).sum())
+
+    def as_dict(self) -> dict:
+        """The ``mesh_grid`` dict other stages use: rows go +y."""
+        return {"x0": self.x0, "y0": self.y0, "res": self.res, "shape": [self.ny, self.nx]}
+
+
+def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float) -> Grid:
+    """Grid over the trajectory's bounding box grown by ``crop_m``; keep vertices within ``crop_m`` of it.
+
+    trajectory_xy: (F, 2) rig positions in order; the distance is to the polyline through them
+    (a one-frame sequence gives a disc). Origin snapped to multiples of ``res``.
+    """
+    t = np.asarray(trajectory_xy, dtype=np.float64).reshape(-1, 2)
+    lo = np.floor((t.min(0) - crop_m) / res) * res
+    hi = np.ceil((t.max(0) + crop_m) / res) * res
+    nx = int(round((hi[0] - lo[0]) / res)) + 1
+    ny = int(round((hi[1] - lo[1]) / res)) + 1
+    # Rasterise the polyline densely (half-cell spacing), then an exact Euclidean distance transform.
+    pts = [t[:1]]
+    for a, b in zip(t[:-1], t[1:], strict=True):
+        n = max(2, int(math.ceil(np.linalg.norm(b - a) / (0.5 * res))) + 1)
+        pts.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
+    p = np.concatenate(pts)
+    ij = np.rint((p - lo) / res).astype(np.int64)
+    seeds = np.ones((ny, nx), dtype=bool)
+    seeds[np.clip(ij[:, 1], 0, ny - 1), np.clip(ij[:, 0], 0, nx - 1)] = False
+    dist = ndimage.distance_transform_edt(seeds) * res
+    # The snapping of seeds to vertices costs up to res/sqrt(2); keep the crop generous by that much.
+    valid = dist <= crop_m + 0.5 * res
+    return Grid(float(lo[0]), float(lo[1]), float(res), nx, ny, valid)
+
+
+def positional_encoding(p: torch.Tensor, levels: int) -> torch.Tensor:
+    """Phi(p) = [p, sin(2^0 pi p), cos(2^0 pi p), ..., sin(2^(L-1) pi p), cos(2^(L-1) pi p)]: (N, 2) -> (N, 4L+2)."""
+    out = [p]
+    for k in range(levels):
+        a = (2.0**k) * math.pi * p
+        out += [torch.sin(a), torch.cos(a)]
+    return torch.cat(out, dim=1)
+
+
+def _mlp(sizes: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for a, b in zip(sizes[:-1], sizes[1:], strict=True):
+        layers += [nn.Linear(a, b), nn.ReLU()]
+    return nn.Sequential(*layers[:-1])  # no activation after the last linear layer
+
+
+class HeightMLP(nn.Module):
+    """MLP0: d_Phi->128->128->128->128; MLP1: d_Phi+128->128->128->128->1 (4 linear layers each)."""
+
+    def __init__(self, levels: int, hidden: int = 128):
+        super().__init__()
+        self.levels = levels
+        d = 4 * levels + 2
+        self.mlp0 = _mlp([d, hidden, hidden, hidden, hidden])
+        self.mlp1 = _mlp([d + hidden, hidden, hidden, hidden, 1])
+
+    def forward(self, p: torch.Tensor) -> torch.Tensor:
+        """p (N, 2) normalised x, y -> height offsets (N,)."""
+        phi = positional_encoding(p, self.levels)
+        return self.mlp1(torch.cat([phi, self.mlp0(phi)], dim=1)).squeeze(1)
+
+
+class RoadMeshModel(nn.Module):
+    """Learnable stage-1 parameters over a Grid: height MLP, per-vertex RGB and semantic logits."""
+
+    def __init__(self, grid: Grid, num_classes: int, levels: int, hidden: int = 128, z_base: float = 0.0,
+                 generator: torch.Generator | None = None):
+        super().__init__()
+        self.grid = grid
+        flat_valid = torch.from_numpy(grid.valid.reshape(-1).copy())
+        vid = torch.nonzero(flat_valid).squeeze(1)
+        self.register_buffer("valid_t", torch.from_numpy(grid.valid.copy()))  # (ny, nx) bool crop
+        self.register_buffer("vertex_flat_ids", vid)  # compact -> flat id j*nx+i
+        lut = torch.full((grid.nx * grid.ny,), -1, dtype=torch.long)
+        lut[vid] = torch.arange(vid.numel())
+        self.register_buffer("flat_to_compact", lut)
+        i, j = vid % grid.nx, vid // grid.nx
+        sx = max((grid.nx - 1) * grid.res, 1e-9)
+        sy = max((grid.ny - 1) * grid.res, 1e-9)
+        p = torch.stack([2.0 * i.double() * grid.res / sx - 1.0, 2.0 * j.double() * grid.res / sy - 1.0], 1)
+        self.register_buffer("p_norm", p.float())
+        self.register_buffer("z_base", torch.tensor(float(z_base)))
+        self.height_mlp = HeightMLP(levels, hidden)
+        self.rgb = nn.Parameter(0.01 * torch.randn(vid.numel(), 3, generator=generator))
+        self.sem = nn.Parameter(torch.zeros(vid.numel(), num_classes))
+        # Grid edges (right and up neighbours) between kept vertices, compact ids: the Laplacian term.
+        v = grid.valid
+        flat = np.arange(grid.nx * grid.ny).reshape(grid.ny, grid.nx)
+        er = np.stack([flat[:, :-1][v[:, :-1] & v[:, 1:]], flat[:, 1:][v[:, :-1] & v[:, 1:]]], 1)
+        eu = np.stack([flat[:-1, :][v[:-1, :] & v[1:, :]], flat[1:, :][v[:-1, :] & v[1:, :]]], 1)
+        e = torch.from_numpy(np.concatenate([er, eu]).astype(np.int64))
+        self.register_buffer("edges", lut[e])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertex_flat_ids.numel())
+
+    def heights(self, compact_ids: torch.Tensor | None = None, chunk: int = 65536) -> torch.Tensor:
+        """Heights (M,) of compact vertices ``compact_ids`` (all when None), world z."""
+        p = self.p_norm if compact_ids is None else self.p_norm[compact_ids]
+        if p.shape[0] <= chunk or torch.is_grad_enabled():
+            return self.height_mlp(p) + self.z_base
+        return torch.cat([self.height_mlp(p[s:s + chunk]) for s in range(0, p.shape[0], chunk)]) + self.z_base
+
+    def dense(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
+        """Compact per-vertex values (Nv, ...) -> dense (ny, nx, ...) with ``fill`` off the crop."""
+        g = self.grid
+        out = values.new_full((g.ny * g.nx, *values.shape[1:]), fill)
+        out = out.index_copy(0, self.vertex_flat_ids, values)
+        return out.reshape(g.ny, g.nx, *values.shape[1:])
+
+
+@dataclass
+class RoadMesh:
+    """The stage-1 result. surface: heights from the trained MLP, valid = crop; rgb (ny, nx, 3) in [0, 1];
+    sem_logits (ny, nx, C); class_ids maps channel -> the sequence's class id."""
+
+    surface: HeightField
+    rgb: torch.Tensor
+    sem_logits: torch.Tensor
+    class_ids: list[int]
+    has_semantics: bool = True
+
+    def labels(self) -> torch.Tensor:
+        """(ny, nx) long class id of the argmax channel; -1 off the crop or without semantics."""
+        lab = torch.tensor(self.class_ids, dtype=torch.long, device=self.sem_logits.device)[
+            self.sem_logits.argmax(dim=-1)] if self.sem_logits.shape[-1] else torch.full(
+            self.surface.valid.shape, -1, dtype=torch.long)
+        if not self.has_semantics:
+            lab = torch.full_like(lab, -1)
+        return torch.where(self.surface.valid.to(lab.device), lab, torch.full_like(lab, -1))
+
+    def road_mask(self, classes: list[SemanticClass]) -> torch.Tensor:
+        """(ny, nx) bool: the argmax class is a road class (the whole footprint without semantics)."""
+        valid = self.surface.valid
+        if not self.has_semantics or not self.class_ids:
+            return valid.clone()
+        road_ids = {c.id for c in classes if c.road}
+        is_road = torch.tensor([cid in road_ids for cid in self.class_ids], dtype=torch.bool)
+        return is_road[self.sem_logits.argmax(dim=-1).cpu()].to(valid.device) & valid
+
+    @property
+    def grid(self) -> dict:
+        s = self.surface
+        return {"x0": s.x0, "y0": s.y0, "res": s.res, "shape": [s.ny, s.nx]}

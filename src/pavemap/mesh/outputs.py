@@ -1,0 +1,225 @@
+"""Stage-1 files: mesh.ply, BEV rasters (PNG + .npy), curves, metrics.json, mesh.npz and the checkpoint.
+
+Array convention: ``.npy`` rasters are in grid order (row = y index, as ``HeightField``); PNGs are
+flipped so that +y (north when the world is ENU) is up, for people. ``grid.json`` holds
+``{"x0", "y0", "res", "shape": [ny, nx]}``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from pavemap.errors import PavemapError
+from pavemap.geometry import HeightField
+from pavemap.io.atomic import atomic_path, atomic_write_bytes, atomic_write_json
+from pavemap.mesh.model import Grid, RoadMesh
+from pavemap.types import SemanticClass
+
+MESH_FILE = "mesh.npz"
+
+_NAMED_COLOURS = {
+    "road": (128, 64, 128), "lane_marking": (255, 255, 255), "curb": (196, 196, 0), "sidewalk": (244, 35, 232),
+    "terrain": (107, 142, 35), "vegetation": (107, 142, 35), "vehicle": (0, 0, 142), "car": (0, 0, 142),
+    "building": (70, 70, 70), "sky": (70, 130, 180), "person": (220, 20, 60), "crosswalk": (200, 200, 255),
+}
+
+
+def class_colour(c: SemanticClass) -> tuple[int, int, int]:
+    """A stable colour per class name (Cityscapes-like for common names, hashed otherwise)."""
+    if c.name in _NAMED_COLOURS:
+        return _NAMED_COLOURS[c.name]
+    h = hashlib.md5(c.name.encode()).digest()
+    return (h[0], h[1], h[2])
+
+
+def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.ndarray]:
+    """Grid-order rasters: rgb (ny, nx, 3) uint8, semantic (ny, nx) int16 class id (-1 none),
+    semantic_rgb (ny, nx, 3) uint8, height (ny, nx) float32 (NaN off the crop), valid (ny, nx) bool."""
+    valid = mesh.surface.valid.cpu().numpy()
+    rgb = (mesh.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+    rgb[~valid] = 0
+    labels = mesh.labels().cpu().numpy().astype(np.int16)
+    pal = np.zeros((257, 3), dtype=np.uint8)  # index 256 <- label -1
+    for c in classes:
+        pal[c.id] = class_colour(c)
+    sem_rgb = pal[np.where(labels < 0, 256, labels)]
+    if not mesh.has_semantics:
+        sem_rgb[valid] = (128, 128, 128)
+    h = mesh.surface.heights.detach().cpu().numpy().astype(np.float32).copy()
+    h[~valid] = np.nan
+    return {"rgb": rgb, "semantic": labels, "semantic_rgb": sem_rgb, "height": h, "valid": valid}
+
+
+def _png_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(a).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _save_npy(path: Path, a: np.ndarray) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, a)
+
+
+def _height_png(h: np.ndarray) -> np.ndarray:
+    import matplotlib
+
+    ok = np.isfinite(h)
+    out = np.zeros((*h.shape, 3), dtype=np.uint8)
+    if ok.any():
+        lo, hi = np.percentile(h[ok], [1, 99])
+        t = np.clip((h - lo) / max(hi - lo, 1e-6), 0, 1)
+        out[ok] = (matplotlib.colormaps["viridis"](t[ok])[:, :3] * 255).astype(np.uint8)
+    return out
+
+
+def write_mesh_ply(path: Path, mesh: RoadMesh) -> None:
+    """Kept vertices in world coordinates with vertex colours, faces of kept triangles (trimesh)."""
+    import trimesh
+
+    s = mesh.surface
+    flat_valid = s.valid.reshape(-1).cpu()
+    vid = torch.nonzero(flat_valid).squeeze(1)
+    lut = torch.full((s.nx * s.ny,), -1, dtype=torch.long)
+    lut[vid] = torch.arange(vid.numel())
+    verts = s.vertices().detach().cpu().double()[vid].numpy()
+    faces = lut[s.faces(valid_only=True).cpu()].numpy()
+    rgb = (mesh.rgb.reshape(-1, 3)[vid].clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+    colours = np.concatenate([rgb, np.full((rgb.shape[0], 1), 255, np.uint8)], 1)
+    tm = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colours, process=False)
+    atomic_write_bytes(path, tm.export(file_type="ply"))
+
+
+def _curves_png(path: Path, history: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ep = [h["epoch"] for h in history]
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    ax[0].plot(ep, [h["loss"] for h in history], "o-", label="total")
+    ax[0].plot(ep, [h["l_rgb"] for h in history], "s-", label="L1 rgb")
+    ax[0].plot(ep, [h["l_sem"] for h in history], "^-", label="CE sem")
+    ax[0].set_xlabel("epoch")
+    ax[0].set_ylabel("loss")
+    ax[0].legend()
+    ax[1].plot(ep, [h["train_psnr"] for h in history], "o-", label="train (road)")
+    ax[1].plot(ep, [h["eval_psnr"] for h in history], "s-", label="held-out (road)")
+    ax[1].set_xlabel("epoch")
+    ax[1].set_ylabel("PSNR dB")
+    ax[1].legend()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def save_mesh(out: Path, mesh: RoadMesh) -> None:
+    """mesh.npz: grid, crop, heights and compact per-vertex rgb / logits (what load_mesh reads)."""
+    s = mesh.surface
+    valid = s.valid.cpu().numpy()
+    flat = valid.reshape(-1)
+    C = mesh.sem_logits.shape[-1]
+    with atomic_path(out / MESH_FILE) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(
+            f, x0=s.x0, y0=s.y0, res=s.res, heights=s.heights.detach().cpu().numpy().astype(np.float32),
+            valid=valid, rgb=mesh.rgb.reshape(-1, 3).cpu().numpy()[flat].astype(np.float32),
+            sem_logits=mesh.sem_logits.reshape(-1, C).cpu().numpy()[flat].astype(np.float32),
+            class_ids=np.asarray(mesh.class_ids, dtype=np.int64), has_semantics=mesh.has_semantics)
+
+
+def load_mesh(out_dir: Path) -> RoadMesh:
+    """Read the RoadMesh a stage-1 run wrote to ``out_dir`` (``mesh.npz``)."""
+    f = Path(out_dir) / MESH_FILE
+    if not f.is_file():
+        raise PavemapError(f"{f}: not found; run `pavemap reconstruct SEQ --out {out_dir}` first")
+    try:
+        z = np.load(f)
+        valid = z["valid"].astype(bool)
+        ny, nx = valid.shape
+        flat = valid.reshape(-1)
+        C = int(z["sem_logits"].shape[1])
+        rgb = np.zeros((ny * nx, 3), np.float32)
+        rgb[flat] = z["rgb"]
+        sem = np.zeros((ny * nx, C), np.float32)
+        sem[flat] = z["sem_logits"]
+        surf = HeightField(float(z["x0"]), float(z["y0"]), float(z["res"]),
+                           torch.from_numpy(z["heights"].astype(np.float32)), torch.from_numpy(valid))
+        return RoadMesh(surf, torch.from_numpy(rgb.reshape(ny, nx, 3)), torch.from_numpy(sem.reshape(ny, nx, C)),
+                        [int(c) for c in z["class_ids"]], bool(z["has_semantics"]))
+    except (KeyError, ValueError, OSError) as e:
+        raise PavemapError(f"{f}: not a pavemap mesh file ({e})") from None
+
+
+def write_outputs(out: Path, mesh: RoadMesh, metrics: dict, classes: list[SemanticClass]) -> dict[str, Path]:
+    """All stage-1 files into ``out``; returns name -> path."""
+    out.mkdir(parents=True, exist_ok=True)
+    r = bev_rasters(mesh, classes)
+    paths = {}
+    save_mesh(out, mesh)
+    paths["mesh.npz"] = out / MESH_FILE
+    write_mesh_ply(out / "mesh.ply", mesh)
+    paths["mesh.ply"] = out / "mesh.ply"
+    for name, img in (("bev_rgb.png", r["rgb"]), ("bev_semantic.png", r["semantic_rgb"]),
+                      ("bev_height.png", _height_png(r["height"]))):
+        atomic_write_bytes(out / name, _png_bytes(np.ascontiguousarray(img[::-1])))
+        paths[name] = out / name
+    for name in ("rgb", "semantic", "height", "valid"):
+        _save_npy(out / f"bev_{name}.npy", r[name])
+        paths[f"bev_{name}.npy"] = out / f"bev_{name}.npy"
+    atomic_write_json(out / "grid.json", mesh.grid)
+    if metrics.get("history"):
+        _curves_png(out / "curves.png", metrics["history"])
+        paths["curves.png"] = out / "curves.png"
+    atomic_write_json(out / "metrics.json", _json_safe(metrics))
+    paths["metrics.json"] = out / "metrics.json"
+    return paths
+
+
+def _json_safe(o):
+    """NaN/inf -> None (JSON has no NaN)."""
+    if isinstance(o, dict):
+        return {k: _json_safe(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_json_safe(v) for v in o]
+    if isinstance(o, float | np.floating) and not np.isfinite(o):
+        return None
+    return o
+
+
+def save_checkpoint(path: Path, model, opt, delta, epoch: int, history: list[dict], gen: torch.Generator,
+                    grid: Grid, cfg, seconds: float) -> None:
+    state = {
+        "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "opt": opt.state_dict(), "delta": None if delta is None else delta.detach().cpu(), "epoch": epoch,
+        "history": history, "gen": gen.get_state(), "config": cfg.to_dict(), "seconds": seconds,
+        "grid": {"x0": grid.x0, "y0": grid.y0, "res": grid.res, "nx": grid.nx, "ny": grid.ny,
+                 "valid_sum": grid.vertices},
+    }
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(path: Path, grid: Grid, num_classes: int, num_views: int, device: torch.device) -> dict | None:
+    """The checkpoint's state when it belongs to this grid / class table / view set, else None."""
+    try:
+        state = torch.load(path, map_location=device, weights_only=False)
+    except Exception:  # noqa: BLE001 - a corrupt checkpoint is just not resumable
+        return None
+    g = state.get("grid", {})
+    same = (abs(g.get("x0", 1e18) - grid.x0) < 1e-9 and abs(g.get("y0", 1e18) - grid.y0) < 1e-9
+            and g.get("nx") == grid.nx and g.get("ny") == grid.ny and g.get("valid_sum") == grid.vertices)
+    sem = state["model"].get("sem")
+    if not same or sem is None or sem.shape[1] != num_classes:
+        return None
+    if state.get("delta") is not None and state["delta"].shape[0] != num_views:
+        return None
+    return state

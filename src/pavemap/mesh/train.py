@@ -1,0 +1,435 @@
+"""Stage-1 training: fit heights, colours and semantics of the BEV mesh to the frames (SPEC §1).
+
+Each optimizer step samples ``pixels_per_step`` pixels from all training views, finds their
+triangles on a cached copy of the heights (no autograd), evaluates the height MLP only at the
+vertices those triangles and a sample of grid edges need, and back-propagates through one exact
+Newton step per ray (:func:`pavemap.geometry.hits_to_rayhit`). The full-grid heights used by the
+march are refreshed every ``height_refresh_steps`` steps. Losses and weights are the SPEC's:
+``L = L_rgb + 0.5 L_sem + lambda_depth L_depth + 1.0 L_smooth`` over valid pixels.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F  # noqa: N812
+from tqdm.auto import tqdm
+
+from pavemap.errors import PavemapError
+from pavemap.geometry import HeightField, find_hits, hits_to_rayhit
+from pavemap.mesh.config import MeshConfig
+from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
+from pavemap.mesh.model import RoadMesh, RoadMeshModel, build_grid
+from pavemap.mesh.render import view_rays
+from pavemap.types import Sequence
+
+CHECKPOINT = "checkpoint.pt"
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise PavemapError(f"device {name!r} requested but CUDA is not available; use --device cpu")
+    return torch.device(name)
+
+
+def _so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: rotation vectors (V, 3) -> (V, 3, 3), smooth at 0."""
+    theta2 = (w * w).sum(-1, keepdim=True)
+    theta = torch.sqrt(theta2 + 1e-12)
+    a = torch.where(theta2 > 1e-8, torch.sin(theta) / theta, 1 - theta2 / 6)
+    b = torch.where(theta2 > 1e-8, (1 - torch.cos(theta)) / (theta2 + 1e-12), 0.5 - theta2 / 24)
+    z = torch.zeros_like(w[:, 0])
+    Kx = torch.stack([z, -w[:, 2], w[:, 1], w[:, 2], z, -w[:, 0], -w[:, 1], w[:, 0], z], -1).reshape(-1, 3, 3)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(Kx)
+    return eye + a[..., None] * Kx + b[..., None] * (Kx @ Kx)
+
+
+def corrected_poses(T0: torch.Tensor, delta: torch.Tensor | None) -> torch.Tensor:
+    """Apply per-view corrections delta (V, 6) = (rotation vector, translation) in the world frame:
+    ``R = exp(w) R0``, ``t = t0 + tau``."""
+    if delta is None:
+        return T0
+    R = _so3_exp(delta[:, :3]) @ T0[:, :3, :3]
+    t = T0[:, :3, 3] + delta[:, 3:]
+    top = torch.cat([R, t[:, :, None]], dim=2)
+    bottom = T0[:, 3:, :]
+    return torch.cat([top, bottom], dim=1)
+
+
+def _plane_search(pool: PixelPool, z0: float, res: float, device: torch.device, n_max: int = 200000,
+                  span: float = 1.0, steps: int = 41, seed: int = 0) -> float:
+    """Initial road height: the plane z0 + delta where the views agree best on colour (min per-cell variance).
+
+    Without it the MLP must learn a global offset of tens of cm at lr 1e-3, which costs epochs.
+    """
+    g = torch.Generator().manual_seed(seed)
+    sel = pool.road.nonzero().squeeze(1)
+    if sel.numel() < 100:
+        return z0
+    sel = sel[torch.randperm(sel.numel(), generator=g)[:n_max]]
+    o, d = view_rays(pool.Kinv, pool.T, pool.view[sel], pool.uv[sel])
+    col = pool.rgb[sel].float() / 255.0
+    view = pool.view[sel]
+    best, best_z = math.inf, z0
+    down = d[:, 2] < -1e-6
+    for dz in np.linspace(-span, span, steps):
+        z = z0 + float(dz)
+        lam = (z - o[:, 2]) / torch.where(down, d[:, 2], torch.ones_like(d[:, 2]))
+        ok = down & (lam > 0) & (lam < 40)
+        if ok.sum() < 100:
+            continue
+        xy = o[ok, :2] + lam[ok, None] * d[ok, :2]
+        cell = torch.floor(xy / (2 * res)).long()
+        cell = cell - cell.min(0).values
+        key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
+        uniq, inv = torch.unique(key, return_inverse=True)
+        n = torch.bincount(inv, minlength=uniq.numel()).float()
+        # cells seen from at least two views carry the multi-view evidence
+        vmin = torch.full((uniq.numel(),), 1 << 30, dtype=torch.long).scatter_reduce(0, inv, view[ok], "amin")
+        vmax = torch.zeros(uniq.numel(), dtype=torch.long).scatter_reduce(0, inv, view[ok], "amax")
+        multi = (vmax != vmin) & (n >= 2)
+        if multi.sum() < 20:
+            continue
+        s1 = torch.zeros(uniq.numel(), 3).index_add_(0, inv, col[ok])
+        s2 = torch.zeros(uniq.numel(), 3).index_add_(0, inv, col[ok] ** 2)
+        var = (s2 / n[:, None] - (s1 / n[:, None]) ** 2).sum(1)
+        score = float((var * n)[multi].sum() / n[multi].sum())
+        if score < best:
+            best, best_z = score, z
+    return best_z
+
+
+def _psnr(mse: float) -> float:
+    return float(10 * math.log10(1.0 / max(mse, 1e-10)))
+
+
+@torch.no_grad()
+def evaluate_pool(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, heights: torch.Tensor,
+                  delta: torch.Tensor | None = None, max_pixels: int | None = None, batch: int = 131072,
+                  generator: torch.Generator | None = None) -> dict:
+    """PSNR over road pixels the mesh covers, semantic accuracy over labelled valid pixels, coverage."""
+    n = len(pool)
+    idx = torch.arange(n, device=pool.view.device)
+    if max_pixels is not None and n > max_pixels:
+        idx = torch.randperm(n, generator=generator)[:max_pixels].to(pool.view.device)
+    g = model.grid
+    hf = HeightField(g.x0, g.y0, g.res, heights, model.valid_t)
+    T = corrected_poses(pool.T, delta)
+    se = torch.zeros((), dtype=torch.float64, device=heights.device)
+    n_road = n_sem = n_ok = n_hit = 0
+    for s in range(0, idx.numel(), batch):
+        b = idx[s:s + batch]
+        o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
+        cells = find_hits(hf, o, d, cfg.max_dist)
+        hit = hits_to_rayhit(hf, o, d, cells)
+        hv = hit.hit
+        n_hit += int(hv.sum())
+        cid = model.flat_to_compact[hit.vertex_ids[hv]]
+        bary = hit.bary[hv]
+        rgb = (bary[..., None] * model.rgb[cid]).sum(1).clamp(0, 1)
+        gt = pool.rgb[b][hv].float() / 255.0
+        road = pool.road[b][hv]
+        se += ((rgb - gt) ** 2).mean(1)[road].double().sum()
+        n_road += int(road.sum())
+        ch = pool.channel[b][hv]
+        lab = ch >= 0
+        if lab.any() and model.sem.shape[1]:
+            pred = (bary[lab][..., None] * model.sem[cid[lab]]).sum(1).argmax(1)
+            n_ok += int((pred == ch[lab]).sum())
+            n_sem += int(lab.sum())
+    return {
+        "psnr": _psnr(float(se) / n_road) if n_road else float("nan"),
+        "sem_acc": n_ok / n_sem if n_sem else float("nan"),
+        "coverage": n_hit / max(1, idx.numel()),
+        "road_pixels": n_road,
+    }
+
+
+def height_rmse(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.Tensor,
+                truth: HeightField) -> tuple[float, int]:
+    """RMSE (m) of mesh heights vs the truth raster over kept vertices inside the truth grid."""
+    xy = grid_xy[valid].double().cpu()
+    t = HeightField(truth.x0, truth.y0, truth.res, truth.heights.double(), truth.valid)
+    z, inside = t.height_at(xy)
+    h = mesh_heights[valid].double().cpu()
+    if not inside.any():
+        return float("nan"), 0
+    err = (h[inside] - z[inside])
+    return float(torch.sqrt((err ** 2).mean())), int(inside.sum())
+
+
+def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool = True
+                ) -> tuple[RoadMesh, dict]:
+    """Stage 1 on a sequence: returns the mesh and its metrics; writes outputs to ``out_dir`` when given.
+
+    Metrics: psnr (held-out road pixels), sem_acc, height_rmse (with synthetic truth), seconds,
+    vertices, faces, device, history (per epoch), warnings.
+    """
+    from pavemap.mesh.outputs import load_checkpoint, save_checkpoint, write_outputs
+
+    t_start = time.perf_counter()
+    cfg = config
+    cfg.validate()
+    device = resolve_device(cfg.device)
+    notes: list[str] = []
+
+    def warn(msg: str) -> None:
+        notes.append(msg)
+        warnings.warn(msg, stacklevel=3)
+
+    if not seq.frames:
+        raise PavemapError(f"sequence {seq.name!r} has no frames")
+    train_pos, held_pos = split_frames(len(seq.frames), cfg.holdout_every, cfg.frame_stride)
+    if cfg.holdout_every > 0 and not held_pos:
+        warn("fewer than 2 frames: no frame held out; metrics are measured on the training views")
+    train_views, dropped = finite_views(seq, train_pos)
+    held_views, dropped_h = finite_views(seq, held_pos)
+    if dropped + dropped_h:
+        warn(f"{dropped + dropped_h} view(s) with a NaN/infinite pose skipped")
+    if not train_views:
+        raise PavemapError(f"sequence {seq.name!r}: no training view with a finite pose")
+    use_sem = any(v.semantics for _, v in train_views)
+    if not use_sem:
+        warn("no semantic maps in the sequence: RGB-only reconstruction, road mask = mesh footprint")
+    use_depth = any(v.depth for _, v in train_views)
+    classes = seq.classes if use_sem else []
+    class_ids = [c.id for c in classes]
+    channel_lut = np.full(256, -1, dtype=np.int64)
+    for ch, cid in enumerate(class_ids):
+        channel_lut[cid] = ch
+
+    # Grid from the trajectory of the views used.
+    centres = {}
+    for fi, v in train_views + held_views:
+        centres.setdefault(fi, []).append(v.T_world_cam[:3, 3])
+    traj = np.array([np.mean(centres[k], axis=0) for k in sorted(centres)])
+    grid = build_grid(traj[:, :2], cfg.resolution, cfg.crop_m)
+    if grid.vertices < 3 or grid.faces == 0:
+        raise PavemapError("the trajectory crop holds no triangle; check crop_m and resolution")
+
+    pool = build_pool(seq, train_views, cfg.render_scale, channel_lut, use_sem, use_depth).to(device)
+    eval_views = held_views if held_views else train_views
+    epool = build_pool(seq, eval_views, cfg.eval_scale, channel_lut, use_sem, use_depth).to(device)
+    if use_sem and int((epool.channel >= 0).sum()) == 0:
+        warn("held-out views carry no labelled pixels: semantic accuracy is undefined")
+
+    cam_z = float(np.median(traj[:, 2]))
+    z0 = cam_z - cfg.camera_height
+    if cfg.init_height_search:
+        z0 = _plane_search(pool, z0, cfg.resolution, device, seed=cfg.seed)
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed)
+        gen = torch.Generator().manual_seed(cfg.seed)
+        model = RoadMeshModel(grid, len(class_ids), cfg.pe_levels, cfg.hidden, z0, generator=gen)
+    model.to(device)
+
+    delta = None
+    if cfg.pose_refine:
+        delta = torch.nn.Parameter(torch.zeros(len(pool.keys), 6, device=device))
+    groups = [
+        {"params": list(model.height_mlp.parameters()), "lr": cfg.lr_height, "name": "height"},
+        {"params": [model.rgb], "lr": cfg.lr_rgb, "name": "rgb"},
+        {"params": [model.sem], "lr": cfg.lr_sem, "name": "sem"},
+    ]
+    if delta is not None:
+        groups.append({"params": [delta], "lr": cfg.lr_pose, "name": "pose"})
+    opt = torch.optim.Adam(groups)
+
+    # Drop pixels whose rays cannot meet the mesh (sky, far off the crop): they would fill batches with misses.
+    with torch.no_grad():
+        flat = model.dense(model.heights(), fill=float(z0)).float()
+        hf0 = HeightField(grid.x0, grid.y0, grid.res, flat, model.valid_t)
+        keep = torch.zeros(len(pool), dtype=torch.bool, device=device)
+        T_all = pool.T
+        for s in range(0, len(pool), 262144):
+            o, d = view_rays(pool.Kinv, T_all, pool.view[s:s + 262144], pool.uv[s:s + 262144])
+            keep[s + find_hits(hf0, o, d, cfg.max_dist).idx] = True
+        seen = torch.bincount(pool.view[keep], minlength=len(pool.keys))
+        blind = int((seen == 0).sum())
+        if blind:
+            warn(f"{blind} training view(s) see no part of the road mesh (pointing at the sky?) and are unused")
+        pool = pool.subset(keep)
+    if len(pool) == 0:
+        raise PavemapError(f"sequence {seq.name!r}: no training view sees the road area around the trajectory")
+    if use_sem and int(pool.road.sum()) == 0:
+        warn("no pixel of a road class is visible on the mesh area")
+
+    history: list[dict] = []
+    start_epoch = 0
+    elapsed_before = 0.0
+    gen = torch.Generator().manual_seed(cfg.seed + 1)
+    if out_dir is not None and cfg.resume and (Path(out_dir) / CHECKPOINT).is_file():
+        state = load_checkpoint(Path(out_dir) / CHECKPOINT, grid, len(class_ids), len(pool.keys), device)
+        if state is not None:
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["opt"])
+            if delta is not None and state.get("delta") is not None:
+                delta.data.copy_(state["delta"].to(device))
+            history = state["history"]
+            start_epoch = int(state["epoch"])
+            elapsed_before = float(state.get("seconds", 0.0))
+            gen.set_state(state["gen"])
+        else:
+            warn("checkpoint in the output folder does not match this run; starting afresh")
+
+    n_epoch = max(1, int(round(len(pool) * min(cfg.pixel_fraction, 1.0))))
+    steps_per_epoch = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
+    E = model.edges.shape[0]
+    depth_on = use_depth and pool.depth is not None and cfg.w_depth > 0
+    bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, disable=not progress, desc="mesh",
+               unit="step", dynamic_ncols=True)
+    bad = 0
+    gy = grid
+    flat_ids = model.vertex_flat_ids
+    for epoch in range(start_epoch, cfg.epochs):
+        t_ep = time.perf_counter()
+        perm = torch.randperm(len(pool), generator=gen)[:n_epoch].to(device)
+        sums = {"loss": 0.0, "rgb": 0.0, "sem": 0.0, "depth": 0.0, "smooth": 0.0, "se": 0.0, "n": 0}
+        cache = None
+        for step in range(steps_per_epoch):
+            if cache is None or step % cfg.height_refresh_steps == 0:
+                with torch.no_grad():
+                    cache = model.dense(model.heights(), fill=float(z0)).reshape(-1).float()
+            b = perm[step * cfg.pixels_per_step:(step + 1) * cfg.pixels_per_step]
+            if b.numel() == 0:
+                continue
+            T = corrected_poses(pool.T, delta)
+            o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
+            hf_cache = HeightField(gy.x0, gy.y0, gy.res, cache.reshape(gy.ny, gy.nx), model.valid_t)
+            cells = find_hits(hf_cache, o, d, cfg.max_dist)
+            if cells.idx.numel() == 0:
+                bar.update(1)
+                continue
+            tri = model.flat_to_compact[cells.vertex_ids(gy.nx)]  # (M, 3) compact ids
+            ek = torch.randint(0, E, (min(cfg.smooth_edges_per_step, E),), generator=gen).to(device)
+            edges = model.edges[ek]
+            need, inv = torch.unique(torch.cat([tri.reshape(-1), edges.reshape(-1)]), return_inverse=True)
+            h_need = model.heights(need)
+            heights = cache.index_copy(0, flat_ids[need], h_need.float()).reshape(gy.ny, gy.nx)
+            hf = HeightField(gy.x0, gy.y0, gy.res, heights, model.valid_t)
+            hit = hits_to_rayhit(hf, o, d, cells)
+            rows = cells.idx
+            bary = hit.bary[rows]
+            rgb = (bary[..., None] * model.rgb[tri]).sum(1)
+            gt = pool.rgb[b][rows].float() / 255.0
+            l_rgb = (rgb - gt).abs().mean()
+            loss = cfg.w_rgb * l_rgb
+            l_sem = torch.zeros((), device=device)
+            if use_sem and model.sem.shape[1]:
+                ch = pool.channel[b][rows]
+                lab = ch >= 0
+                if lab.any():
+                    sem = (bary[lab][..., None] * model.sem[tri[lab]]).sum(1)
+                    l_sem = F.cross_entropy(sem, ch[lab])
+                    loss = loss + cfg.w_sem * l_sem
+            l_depth = torch.zeros((), device=device)
+            if depth_on:
+                dg = pool.depth[b][rows]
+                m = dg > 0
+                if m.any():
+                    l_depth = (hit.lam[rows][m] - dg[m]).abs().mean()
+                    loss = loss + cfg.w_depth * l_depth
+            he = h_need[inv[tri.numel():]].reshape(-1, 2)
+            l_smooth = ((he[:, 0] - he[:, 1]) ** 2).mean()
+            loss = loss + cfg.w_smooth * l_smooth
+            if not torch.isfinite(loss):
+                bad += 1
+                opt.zero_grad(set_to_none=True)
+                if bad >= cfg.max_bad_steps:
+                    raise PavemapError(f"training diverged: {bad} consecutive non-finite losses (epoch {epoch + 1})")
+                bar.update(1)
+                continue
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            grads_ok = all(p.grad is None or torch.isfinite(p.grad).all() for grp in groups for p in grp["params"])
+            if not grads_ok:
+                bad += 1
+                opt.zero_grad(set_to_none=True)
+                if bad >= cfg.max_bad_steps:
+                    raise PavemapError(f"training diverged: {bad} consecutive non-finite gradients")
+                bar.update(1)
+                continue
+            bad = 0
+            opt.step()
+            with torch.no_grad():
+                road = pool.road[b][rows]
+                se = float(((rgb.detach().clamp(0, 1) - gt) ** 2).mean(1)[road].sum())
+                sums["se"] += se
+                sums["n"] += int(road.sum())
+                sums["loss"] += float(loss)
+                sums["rgb"] += float(l_rgb)
+                sums["sem"] += float(l_sem)
+                sums["depth"] += float(l_depth)
+                sums["smooth"] += float(l_smooth)
+            bar.update(1)
+            if step % 4 == 0:
+                bar.set_postfix(epoch=f"{epoch + 1}/{cfg.epochs}", loss=f"{float(loss):.4f}",
+                                psnr=f"{_psnr(sums['se'] / max(1, sums['n'])):.2f}")
+        with torch.no_grad():
+            heights_now = model.dense(model.heights(), fill=float(z0)).float()
+        ev = evaluate_pool(model, epool, cfg, heights_now, max_pixels=100000,
+                           generator=torch.Generator().manual_seed(cfg.seed + 2))
+        k = max(1, steps_per_epoch)
+        history.append({
+            "epoch": epoch + 1,
+            "loss": sums["loss"] / k, "l_rgb": sums["rgb"] / k, "l_sem": sums["sem"] / k,
+            "l_depth": sums["depth"] / k, "l_smooth": sums["smooth"] / k,
+            "train_psnr": _psnr(sums["se"] / max(1, sums["n"])),
+            "eval_psnr": ev["psnr"], "eval_sem_acc": ev["sem_acc"],
+            "seconds": time.perf_counter() - t_ep,
+        })
+        bar.set_postfix(epoch=f"{epoch + 1}/{cfg.epochs}", loss=f"{history[-1]['loss']:.4f}",
+                        psnr=f"{ev['psnr']:.2f}")
+        if out_dir is not None:
+            save_checkpoint(Path(out_dir) / CHECKPOINT, model, opt, delta, epoch + 1, history, gen, grid, cfg,
+                            elapsed_before + time.perf_counter() - t_start)
+    bar.close()
+
+    # Final evaluation on all held-out pixels.
+    with torch.no_grad():
+        heights_now = model.dense(model.heights(), fill=float(z0)).float()
+    t_ev = time.perf_counter()
+    ev = evaluate_pool(model, epool, cfg, heights_now)
+    ev_s = time.perf_counter() - t_ev
+    mesh = to_road_mesh(model, class_ids, use_sem)
+    metrics: dict = {
+        "psnr": ev["psnr"], "sem_acc": ev["sem_acc"] if use_sem else None,
+        "heldout": bool(held_views), "heldout_views": len(eval_views), "train_views": len(pool.keys),
+        "coverage": ev["coverage"],
+        "vertices": grid.vertices, "faces": grid.faces, "grid": grid.as_dict(),
+        "device": str(device), "epochs": cfg.epochs, "steps_per_epoch": steps_per_epoch,
+        "pixels_per_epoch": n_epoch, "z_init": z0,
+        "eval_pixels_per_second": len(epool) / max(ev_s, 1e-9),
+        "history": history, "warnings": notes, "config": cfg.to_dict(),
+    }
+    if seq.root is not None and (Path(seq.root) / "truth" / "height.npy").is_file():
+        truth = HeightField.from_truth(seq.root)
+        rmse, n = height_rmse(mesh.surface.heights, mesh.surface.valid, mesh.surface.grid_xy(), truth)
+        metrics["height_rmse"] = rmse
+        metrics["height_rmse_vertices"] = n
+    metrics["seconds"] = elapsed_before + time.perf_counter() - t_start
+    if not torch.isfinite(mesh.surface.heights[mesh.surface.valid]).all():
+        raise PavemapError("reconstruction produced non-finite heights")
+    if out_dir is not None:
+        write_outputs(Path(out_dir), mesh, metrics, classes)
+    return mesh, metrics
+
+
+@torch.no_grad()
+def to_road_mesh(model: RoadMeshModel, class_ids: list[int], has_semantics: bool) -> RoadMesh:
+    """Densify the trained model into a RoadMesh (CPU tensors)."""
+    g = model.grid
+    h = model.heights()
+    heights = model.dense(h, fill=0.0).float().cpu()
+    rgb = model.dense(model.rgb.clamp(0, 1)).float().cpu()
+    sem = model.dense(model.sem).float().cpu()
+    surf = HeightField(g.x0, g.y0, g.res, heights, torch.from_numpy(g.valid.copy()))
+    return RoadMesh(surf, rgb, sem, list(class_ids), has_semantics)

@@ -1,0 +1,549 @@
+"""Ray caster for the synthetic world, independent of any reconstruction code.
+
+Per view it produces RGB, semantic labels, metric depth (camera z), a defect instance map and an
+auxiliary code map (defect / off-road streak / cast shadow) that the simulated detector reads.
+
+Ground: every pixel's ray ``o + λ d`` (``d = R K⁻¹ [u, v, 1]``, so λ is the camera depth) is
+bracketed inside a slab around the plane through the ground under the camera (the world's relief
+relative to that plane is bounded: curbs, verge, potholes, vertical curves), marched in a fixed
+number of steps to find the first sign change of ``g(λ) = o_z + λ d_z − h(x(λ), y(λ))`` and refined
+by Illinois regula falsi on the exact (bilinear) surface. Boxes and spheres are intersected
+analytically, only on the pixels of their projected screen rectangle (pixel–primitive pairs in one
+batch). Everything is whole-image tensor code; no per-pixel Python.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pavemap.synth.world import (
+    BUILDING,
+    DECOY_ID_OFFSET,
+    OBJECT_KINDS,
+    ROAD,
+    SKY,
+    TERRAIN,
+    World,
+    bilinear_t,
+    box_corners,
+    ground_label,
+    markings,
+    st_lookup,
+    value_noise,
+)
+from pavemap.types import Camera
+
+SHADOW_BIT = 1 << 14
+FAR_M = 220.0  # horizontal distance beyond which the ground is not rendered (haze → sky colour)
+MARCH_STEPS = 10
+REFINE_STEPS = 8
+HORIZON = torch.tensor([0.80, 0.85, 0.9])
+ZENITH = torch.tensor([0.40, 0.58, 0.84])
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view. All arrays (H, W)."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8
+    label: np.ndarray  # (H, W) uint8 class ids (world.CLASSES)
+    depth: np.ndarray  # (H, W) float32 camera-z metres, 0 where nothing was hit (sky)
+    instance: np.ndarray  # (H, W) int32: 0 none, else defect id + 1 (visible, unoccluded pixels only)
+    code: np.ndarray  # (H, W) uint16: low 14 bits defect id+1 or decoy+DECOY_ID_OFFSET; bit 14 shadow
+    obj: np.ndarray  # (H, W) int32: 0 none, else object kind index + 1 (OBJECT_KINDS)
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    if str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def _hash01(a: torch.Tensor, b: torch.Tensor, seed: float) -> torch.Tensor:
+    """Deterministic pseudo-random value in [0, 1) per integer pair (for Voronoi jitter)."""
+    v = torch.sin(a * 127.1 + b * 311.7 + seed * 74.7) * 43758.5453
+    return v - v.floor()
+
+
+# ---------------------------------------------------------------------------- ground intersection
+
+
+def _ground_g(tw: dict, o: torch.Tensor, dx, dy, dz, lam):
+    """g(λ) = ray height − surface height."""
+    x = o[0] + lam * dx
+    y = o[1] + lam * dy
+    return o[2] + lam * dz - bilinear_t(tw["height"], tw["hgrid"], x, y)
+
+
+def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz) -> torch.Tensor:
+    """(N,) camera depth of the first ground hit of each ray, +inf where none within FAR_M."""
+    dev = dx.device
+    p = world.params
+    ox, oy, oz = (float(v) for v in o_np)
+    zf = float(world.height_at(np.array([ox]), np.array([oy]))[0])
+    e = 3.0  # plane through the ground within ±3 m of the camera
+    gx = float((world.height_at(np.array([ox + e]), np.array([oy])) - world.height_at(np.array([ox - e]),
+                                                                                       np.array([oy])))[0] / (2 * e))
+    gy = float((world.height_at(np.array([ox]), np.array([oy + e])) - world.height_at(np.array([ox]),
+                                                                                       np.array([oy - e])))[0] / (2 * e))
+    a = dz - gx * dx - gy * dy  # rate at which the ray descends relative to that plane
+    h0 = oz - zf
+    lam_out = torch.full_like(dx, float("inf"))
+    idx = torch.nonzero(a < -1e-5).squeeze(1)
+    if idx.numel() == 0:
+        return lam_out
+    a_ = a[idx]
+    dx_, dy_, dz_ = dx[idx], dy[idx], dz[idx]
+    horiz = torch.sqrt(dx_ * dx_ + dy_ * dy_).clamp(min=1e-9)
+    # relief relative to the plane: curbs + sidewalk + verge rise above, potholes and crown below;
+    # the vertical curve and banking changes add a quadratic allowance in the horizontal distance.
+    U, L = 0.9 + 0.02 * p.width, -0.35 - 0.02 * p.width
+    kv = p.vert_amp * (2 * math.pi / p.vert_wavelength) ** 2 + 2e-5
+    lam_bot0 = (h0 - L) / (-a_)
+    allow = (0.5 * kv * (lam_bot0 * horiz) ** 2).clamp(max=6.0)
+    lam_top = ((h0 - U - allow) / (-a_)).clamp(min=0.15)
+    lam_bot = torch.minimum((h0 - L + allow) / (-a_), FAR_M / horiz)
+    ok = lam_bot > lam_top
+    o = torch.tensor([ox, oy, oz], dtype=dx.dtype, device=dev)
+    g_prev = _ground_g(tw, o, dx_, dy_, dz_, lam_top)
+    lam_prev = lam_top
+    # a ray already below the surface at the top of the slab (relief bound exceeded): take lam_top
+    found = g_prev <= 0
+    lo = lam_top.clone()
+    hi = lam_top.clone()
+    glo = g_prev.clone()
+    ghi = g_prev.clone()
+    for i in range(1, MARCH_STEPS + 1):
+        lam = lam_top + (lam_bot - lam_top) * (i / MARCH_STEPS)
+        g = _ground_g(tw, o, dx_, dy_, dz_, lam)
+        new = (~found) & (g <= 0)
+        lo = torch.where(new, lam_prev, lo)
+        glo = torch.where(new, g_prev, glo)
+        hi = torch.where(new, lam, hi)
+        ghi = torch.where(new, g, ghi)
+        found |= new
+        lam_prev, g_prev = lam, g
+    found &= ok
+    sel = torch.nonzero(found & (glo > 0)).squeeze(1)
+    direct = torch.nonzero(found & (glo <= 0)).squeeze(1)
+    res = torch.full_like(lam_top, float("inf"))
+    res[direct] = lam_top[direct]
+    if sel.numel():
+        lo, hi, glo, ghi = lo[sel], hi[sel], glo[sel], ghi[sel]
+        sdx, sdy, sdz = dx_[sel], dy_[sel], dz_[sel]
+        side = torch.zeros_like(lo)
+        for _ in range(REFINE_STEPS):  # Illinois regula falsi: bracket kept, converges superlinearly
+            lam = (lo * ghi - hi * glo) / (ghi - glo)
+            g = _ground_g(tw, o, sdx, sdy, sdz, lam)
+            pos = g > 0
+            glo_s = torch.where((~pos) & (side < 0), glo * 0.5, glo)
+            ghi_s = torch.where(pos & (side > 0), ghi * 0.5, ghi)
+            lo = torch.where(pos, lam, lo)
+            glo = torch.where(pos, g, glo_s)
+            hi = torch.where(pos, hi, lam)
+            ghi = torch.where(pos, ghi_s, g)
+            side = torch.where(pos, torch.ones_like(side), -torch.ones_like(side))
+        res[sel] = (lo * ghi - hi * glo) / (ghi - glo)
+    lam_out[idx] = res
+    return lam_out
+
+
+# ---------------------------------------------------------------------------- objects
+
+
+def _screen_rects(corners: np.ndarray, R: np.ndarray, o: np.ndarray, K: np.ndarray, W: int, H: int,
+                  max_dist: float = 160.0) -> list[tuple[int, int, int, int, int]]:
+    """Pixel rectangles (k, u0, u1, v0, v1) of objects' corner sets (Nk, C, 3) that may be visible."""
+    if len(corners) == 0:
+        return []
+    Xc = (corners - o[None, None]) @ R  # (Nk, C, 3) camera coordinates (R is camera-to-world)
+    z = Xc[..., 2]
+    out = []
+    zmin = z.min(1)
+    zmax = z.max(1)
+    dist = np.linalg.norm(corners.mean(1) - o[None], axis=1)
+    for k in np.nonzero((zmax > 0.05) & (dist < max_dist))[0]:
+        if zmin[k] <= 0.05:
+            # straddles the camera plane: the projection is unbounded, take the whole image
+            out.append((int(k), 0, W, 0, H))
+            continue
+        uv = Xc[k, :, :2] / z[k, :, None]
+        u = K[0, 0] * uv[:, 0] + K[0, 1] * uv[:, 1] + K[0, 2]
+        v = K[1, 1] * uv[:, 1] + K[1, 2]
+        u0, u1 = max(0, int(math.floor(u.min()))), min(W, int(math.ceil(u.max())) + 1)
+        v0, v1 = max(0, int(math.floor(v.min()))), min(H, int(math.ceil(v.max())) + 1)
+        if u1 > u0 and v1 > v0:
+            out.append((int(k), u0, u1, v0, v1))
+    return out
+
+
+def _pairs(rects, W: int, dev) -> tuple[torch.Tensor, torch.Tensor]:
+    pix, ids = [], []
+    for k, u0, u1, v0, v1 in rects:
+        uu = torch.arange(u0, u1, device=dev)
+        vv = torch.arange(v0, v1, device=dev)
+        pp = (vv[:, None] * W + uu[None, :]).reshape(-1)
+        pix.append(pp)
+        ids.append(torch.full_like(pp, k))
+    if not pix:
+        e = torch.zeros(0, dtype=torch.long, device=dev)
+        return e, e
+    return torch.cat(pix), torch.cat(ids)
+
+
+def _winner(n: int, pix: torch.Tensor, lam: torch.Tensor, hit: torch.Tensor):
+    """Per pixel the nearest hit among pairs: (depth (n,), index of the winning pair or -1 (n,))."""
+    depth = torch.full((n,), float("inf"), device=lam.device, dtype=lam.dtype)
+    win = torch.full((n,), -1, dtype=torch.long, device=lam.device)
+    if pix.numel() == 0:
+        return depth, win
+    hp, hl = pix[hit], lam[hit]
+    depth.scatter_reduce_(0, hp, hl, reduce="amin")
+    pair_idx = torch.nonzero(hit).squeeze(1)
+    is_min = hl == depth[hp]
+    win.scatter_reduce_(0, hp[is_min], pair_idx[is_min], reduce="amax")
+    return depth, win
+
+
+def intersect_boxes(tw: dict, rects, o: torch.Tensor, d: torch.Tensor, W: int):
+    """Nearest oriented-box hit per pixel: depth (N,), winning box (N,) or -1, local hit point, local axis."""
+    n = d.shape[0]
+    pix, bid = _pairs(rects, W, d.device)
+    b = tw["boxes"]
+    if pix.numel() == 0:
+        depth, win = _winner(n, pix, torch.zeros(0, device=d.device), torch.zeros(0, dtype=torch.bool))
+        return depth, win, None
+    bb = b[bid]
+    c, s = torch.cos(bb[:, 6]), torch.sin(bb[:, 6])
+    ox, oy, oz = o[0] - bb[:, 0], o[1] - bb[:, 1], o[2] - bb[:, 2]
+    dd = d[pix]
+    lo = torch.stack([c * ox + s * oy, -s * ox + c * oy, oz], 1)
+    ld = torch.stack([c * dd[:, 0] + s * dd[:, 1], -s * dd[:, 0] + c * dd[:, 1], dd[:, 2]], 1)
+    ld = torch.where(ld.abs() < 1e-9, torch.full_like(ld, 1e-9), ld)
+    hsz = bb[:, 3:6]
+    t1 = (-hsz - lo) / ld
+    t2 = (hsz - lo) / ld
+    tn, axis = torch.minimum(t1, t2).max(1)
+    tf = torch.maximum(t1, t2).min(1).values
+    hit = (tf >= tn) & (tn > 0.05)
+    depth, win = _winner(n, pix, tn, hit)
+    return depth, win, (pix, bid, lo, ld, tn, axis)
+
+
+def intersect_spheres(tw: dict, rects, o: torch.Tensor, d: torch.Tensor, W: int):
+    n = d.shape[0]
+    pix, sid = _pairs(rects, W, d.device)
+    if pix.numel() == 0:
+        depth, win = _winner(n, pix, torch.zeros(0, device=d.device), torch.zeros(0, dtype=torch.bool))
+        return depth, win, None
+    sp = tw["spheres"][sid]
+    oc = o[None] - sp[:, :3]
+    dd = d[pix]
+    A = (dd * dd).sum(1)
+    B = (oc * dd).sum(1)
+    C = (oc * oc).sum(1) - sp[:, 3] ** 2
+    disc = B * B - A * C
+    lam = (-B - torch.sqrt(disc.clamp(min=0))) / A
+    hit = (disc > 0) & (lam > 0.05)
+    depth, win = _winner(n, pix, lam, hit)
+    return depth, win, (pix, sid, lam)
+
+
+# ---------------------------------------------------------------------------- shading
+
+
+def _ground_shade(world: World, tw: dict, px, py, lam_fp):
+    """Albedo (M, 3), label (M,), normal (M, 3), shadow (M,), code (M,) int for ground points."""
+    p = world.params
+    tiles = tw["tiles"]
+    s, t = st_lookup(tw, px, py)
+    _, hx, hy = bilinear_t(tw["height"], tw["hgrid"], px, py, grad=True)
+    nrm = torch.stack([-hx, -hy, torch.ones_like(hx)], 1)
+    nrm = nrm / nrm.norm(dim=1, keepdim=True)
+    fp = lam_fp
+    cov, paint = markings(p, s, t, fp)
+    lab = ground_label(p, s, t, cov)
+
+    def att(scale: float):
+        return (scale / (2 * fp) - 1).clamp(0, 1)  # fade octaves finer than the pixel footprint
+
+    n1 = value_noise(tiles[0], px, py, 5.0)
+    n2 = value_noise(tiles[1], px, py, 1.1)
+    n3 = value_noise(tiles[2], px, py, 0.21)
+    n4 = value_noise(tiles[3], px, py, 0.045)
+    grain = 0.07 * (n1 - 0.5) + 0.06 * (n2 - 0.5) + 0.07 * (n3 - 0.5) * att(0.21) + 0.1 * (n4 - 0.5) * att(0.045)
+    # tyre tracks: slightly darker, polished bands in each lane
+    lane_pos = torch.remainder(t + p.width / 2, p.lane_width) - p.lane_width / 2
+    tracks = 0.035 * torch.exp(-(((lane_pos.abs() - 0.85) / 0.3) ** 2))
+    asphalt = (0.40 + grain - tracks).clamp(0.05, 1)[:, None] * torch.tensor([1.0, 1.0, 1.035], device=px.device)
+    wear = 0.8 + 0.2 * n3
+    road_col = asphalt * (1 - (cov * wear)[:, None]) + paint * (cov * wear)[:, None]
+    concrete = (0.62 + 0.08 * (n2 - 0.5) + 0.06 * (n4 - 0.5) * att(0.045))[:, None] * torch.tensor(
+        [1.0, 0.99, 0.96], device=px.device)
+    # sidewalk slabs: joints every 1.5 m along the road and one along the middle
+    ms = torch.remainder(s, 1.5)
+    jd = torch.minimum(ms, 1.5 - ms)
+    joint = ((0.006 - jd) / fp.clamp(min=1e-3) + 0.5).clamp(0, 1) * (0.012 / fp).clamp(max=1)
+    walk = (0.58 + 0.06 * (n2 - 0.5) + 0.08 * (n4 - 0.5) * att(0.045))[:, None] * torch.tensor(
+        [1.0, 0.96, 0.9], device=px.device) * (1 - 0.35 * joint)[:, None]
+    g_mix = (0.6 * n1 + 0.4 * n2)[:, None]
+    grass = torch.tensor([0.22, 0.36, 0.13], device=px.device) * (0.7 + 0.6 * n3 * att(0.21) + 0.3 * n2)[:, None]
+    dirt = torch.tensor([0.42, 0.35, 0.25], device=px.device) * (0.8 + 0.3 * n4)[:, None]
+    terrain = grass * (1 - (g_mix - 0.55).clamp(0, 0.3) / 0.3) + dirt * ((g_mix - 0.55).clamp(0, 0.3) / 0.3)
+    a = torch.abs(t)
+    w2 = p.width / 2
+    col = torch.where((a < w2)[:, None], road_col, terrain)
+    sw = torch.where(t > 0, torch.full_like(t, p.sidewalk_left), torch.full_like(t, p.sidewalk_right))
+    col = torch.where(((a >= w2) & (a < w2 + p.curb_width))[:, None], concrete, col)
+    col = torch.where(((a >= w2 + p.curb_width) & (a < w2 + p.curb_width + sw))[:, None], walk, col)
+    # gutter grime along the kerb
+    grime = torch.exp(-(((a - w2 + 0.1) / 0.18) ** 2)) * (a < w2)
+    col = col * (1 - 0.25 * grime * n2)[:, None]
+
+    # ---- defects and off-road streaks (only where a point is inside an item's bounding box)
+    code = torch.zeros_like(s, dtype=torch.long)
+    it = tw["items"]
+    if it["n"] > 0:
+        nb = it["table"].shape[0]
+        b = ((s - it["s_min"]) / it["bin_m"]).long().clamp(0, nb - 1)
+        cand = it["table"][b]  # (M, K)
+        ab = it["aabb"][cand.clamp(min=0)]
+        inb = (cand >= 0) & (px[:, None] >= ab[..., 0]) & (py[:, None] >= ab[..., 1]) & (
+            px[:, None] <= ab[..., 2]) & (py[:, None] <= ab[..., 3])
+        pi, ki = torch.nonzero(inb, as_tuple=True)
+        if pi.numel():
+            item = cand[pi, ki]
+            factor, member, darken_base = _item_effects(it, item, px[pi], py[pi], fp[pi], tiles)
+            f = torch.ones_like(s).index_reduce_(0, pi, factor, "prod")
+            col = col * f[:, None]
+            base = torch.ones_like(s).index_reduce_(0, pi, darken_base, "prod")
+            col = col * base[:, None] * torch.tensor([1.0, 0.98, 0.95], device=px.device).pow(
+                (1 - base)[:, None] * 4)
+            codes = torch.where(member, it["prm"][item, 1].long(), torch.zeros_like(item))
+            code.scatter_reduce_(0, pi, codes, reduce="amax")
+    if tw["shgrid"] is not None:
+        sh = bilinear_t(tw["shadow"], tw["shgrid"], px, py).clamp(0, 1)
+    else:
+        sh = torch.zeros_like(s)
+    return col, lab, nrm, sh, code
+
+
+def _item_effects(it: dict, item, x, y, fp, tiles):
+    """Per (point, item) pair: colour factor (P,), membership (P,) bool, base darkening (P,)."""
+    prm = it["prm"][item]
+    cls = prm[:, 0].long()
+    is_line = (cls == 0) | (cls == 1) | (cls == 4)
+    factor = torch.ones_like(x)
+    base = torch.ones_like(x)
+    member = torch.zeros_like(x, dtype=torch.bool)
+    fpc = fp.clamp(min=1e-3)
+    li = torch.nonzero(is_line).squeeze(1)
+    if li.numel():
+        L = it["lines"][item[li]]  # (P, M, 2)
+        a, b = L[:, :-1], L[:, 1:]
+        ab = b - a
+        pt = torch.stack([x[li], y[li]], 1)[:, None]
+        ap = pt - a
+        tt = ((ap * ab).sum(-1) / ((ab * ab).sum(-1) + 1e-12)).clamp(0, 1)
+        dist = (ap - tt[..., None] * ab).norm(dim=-1).min(1).values
+        w = prm[li, 2]
+        core = ((w / 2 - dist) / fpc[li] + 0.5).clamp(0, 1) * (w / fpc[li]).clamp(max=1)
+        halo = (1 - dist / 0.07).clamp(0, 1) * 0.18
+        factor[li] = (1 - prm[li, 4] * core) * (1 - halo)
+        member[li] = dist < prm[li, 3]
+    bi = torch.nonzero(~is_line).squeeze(1)
+    if bi.numel():
+        q_ = prm[bi]
+        c, s = torch.cos(q_[:, 9]), torch.sin(q_[:, 9])
+        dx, dy = x[bi] - q_[:, 5], y[bi] - q_[:, 6]
+        lu = c * dx + s * dy
+        lv = -s * dx + c * dy
+        u, v = lu / q_[:, 7], lv / q_[:, 8]
+        rho = torch.sqrt(u * u + v * v)
+        phi = torch.atan2(v, u)
+        q = rho / (1 + q_[:, 10] * torch.cos(2 * phi + q_[:, 12]) + q_[:, 11] * torch.cos(3 * phi + q_[:, 13]))
+        inside = q < 1
+        member[bi] = inside
+        is_pot = q_[:, 0] == 3
+        # alligator: Voronoi crack network (distance to the nearest cell boundary) in a darkened patch
+        cell = q_[:, 14]
+        gu, gv = lu / cell, lv / cell
+        iu, iv = gu.floor(), gv.floor()
+        d1 = torch.full_like(gu, 9.0)
+        d2 = torch.full_like(gu, 9.0)
+        for du in (-1.0, 0.0, 1.0):
+            for dv in (-1.0, 0.0, 1.0):
+                cu, cv = iu + du, iv + dv
+                ju = cu + 0.15 + 0.7 * _hash01(cu, cv, q_[:, 15])
+                jv = cv + 0.15 + 0.7 * _hash01(cv, cu, q_[:, 15] + 3.0)
+                dd = torch.sqrt((gu - ju) ** 2 + (gv - jv) ** 2)
+                d2 = torch.where(dd < d1, d1, torch.minimum(d2, dd))
+                d1 = torch.minimum(d1, dd)
+        edge = 0.5 * (d2 - d1) * cell
+        w = q_[:, 2]
+        net = ((w / 2 - edge) / fpc[bi] + 0.5).clamp(0, 1) * (w / fpc[bi]).clamp(max=1)
+        fade = ((1 - q) / 0.08).clamp(0, 1)
+        allig = (1 - q_[:, 4] * net * fade)
+        n = value_noise(tiles[3], x[bi], y[bi], 0.03)
+        pot = 0.45 + 0.3 * n  # darker, rough, wet-looking interior
+        rim = torch.exp(-(((q - 1.0) / 0.06) ** 2)) * 0.15
+        factor[bi] = torch.where(is_pot, torch.where(inside, pot, 1 - rim), torch.where(inside, allig, 1.0))
+        base[bi] = torch.where(inside & ~is_pot, 0.9 + 0.05 * n, 1.0)
+    return factor, member, base
+
+
+def _object_shade(tw: dict, kind: torch.Tensor, colour: torch.Tensor, local: torch.Tensor, axis: torch.Tensor,
+                  hsz: torch.Tensor, tiles):
+    """Albedo of box faces from their local hit point: windows, streaks, tyres, glass."""
+    k = {n: i for i, n in enumerate(OBJECT_KINDS)}
+    # face coordinates: u along the face, v height above the box bottom
+    u = torch.where(axis == 0, local[:, 1], local[:, 0])
+    v = local[:, 2] + hsz[:, 2]
+    col = colour.clone()
+    n = value_noise(tiles[1], u * 3.0 + v, v * 3.0, 1.0)
+    col = col * (0.92 + 0.16 * n)[:, None]
+    bld = (kind == k["building"]) & (axis != 2)
+    fu = torch.remainder(u + 100.0, 3.2) / 3.2
+    fv = torch.remainder(v - 1.0, 3.2) / 3.2
+    win = bld & (fu > 0.25) & (fu < 0.75) & (fv > 0.3) & (fv < 0.8) & (v > 1.5) & (v < 2 * hsz[:, 2] - 1.0)
+    glass = torch.tensor([0.16, 0.19, 0.24], device=col.device) * (0.8 + 0.6 * _hash01(
+        torch.floor((u + 100.0) / 3.2), torch.floor((v - 1.0) / 3.2), torch.zeros_like(u)))[:, None]
+    col = torch.where(win[:, None], glass, col)
+    roof = (axis == 2) & ((kind == k["building"]) | (kind == k["wall"]))
+    col = torch.where(roof[:, None], col * 0.6, col)
+    # crack-like dark streaks on walls and some facades (false-positive bait)
+    wall = (kind == k["wall"]) | (kind == k["building"])
+    sn = value_noise(tiles[2], u * 0.8, v * 0.25, 1.0)
+    streak = wall & ((sn - 0.5).abs() < 0.018) & (axis != 2)
+    col = torch.where(streak[:, None], col * 0.35, col)
+    # car: dark glass on the cabin sides, bumper line
+    cabin_side = (kind == k["car_cabin"]) & (axis != 2) & (v > 0.08 * 2 * hsz[:, 2])
+    col = torch.where(cabin_side[:, None], torch.tensor([0.1, 0.12, 0.15], device=col.device) + 0.0 * col, col)
+    return col
+
+
+# ---------------------------------------------------------------------------- view
+
+
+def render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure: float = 1.0,
+                white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0), noise_seed: int = 0,
+                device: str | torch.device = "cpu") -> RenderOutput:
+    """Render one view of ``world`` seen by ``camera`` at pose ``T_world_cam`` (4, 4) camera-to-world."""
+    dev = resolve_device(device)
+    tw = world.tensors(dev)
+    H, W = camera.height, camera.width
+    n = H * W
+    K = np.asarray(camera.K, np.float64)
+    T = np.asarray(T_world_cam, np.float64)
+    R, o_np = T[:3, :3], T[:3, 3]
+    M = torch.as_tensor(R @ np.linalg.inv(K), dtype=torch.float32, device=dev)
+    vv, uu = torch.meshgrid(torch.arange(H, device=dev, dtype=torch.float32),
+                            torch.arange(W, device=dev, dtype=torch.float32), indexing="ij")
+    uu = uu.reshape(-1)
+    vv = vv.reshape(-1)
+    d = torch.stack([M[i, 0] * uu + M[i, 1] * vv + M[i, 2] for i in range(3)], 1)  # (N, 3), camera z = 1
+    o = torch.as_tensor(o_np, dtype=torch.float32, device=dev)
+
+    lam_g = intersect_ground(world, tw, o_np, d[:, 0], d[:, 1], d[:, 2])
+    brects = _screen_rects(box_corners(world.boxes), R, o_np, K, W, H) if len(world.boxes) else []
+    lam_b, win_b, binfo = intersect_boxes(tw, brects, o, d, W)
+    if len(world.spheres):
+        sp = world.spheres.astype(np.float64)
+        cube = sp[:, None, :3] + sp[:, None, 3:4] * np.array(
+            [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)[None]
+        srects = _screen_rects(cube, R, o_np, K, W, H)
+    else:
+        srects = []
+    lam_s, win_s, sinfo = intersect_spheres(tw, srects, o, d, W)
+
+    depth = torch.minimum(torch.minimum(lam_g, lam_b), lam_s)
+    hit_any = torch.isfinite(depth)
+    is_g = hit_any & (lam_g <= depth)
+    is_b = hit_any & ~is_g & (lam_b <= depth)
+    is_s = hit_any & ~is_g & ~is_b
+
+    col = torch.zeros((n, 3), device=dev)
+    nrm = torch.zeros((n, 3), device=dev)
+    shadow = torch.zeros(n, device=dev)
+    label = torch.full((n,), SKY, dtype=torch.long, device=dev)
+    code = torch.zeros(n, dtype=torch.long, device=dev)
+    obj = torch.zeros(n, dtype=torch.long, device=dev)
+    fx = float(K[0, 0])
+    dnorm = d.norm(dim=1)
+
+    gi = torch.nonzero(is_g).squeeze(1)
+    if gi.numel():
+        lam = lam_g[gi]
+        px = o[0] + lam * d[gi, 0]
+        py = o[1] + lam * d[gi, 1]
+        fp = lam * dnorm[gi] / fx
+        c, lab, nr, sh, cd = _ground_shade(world, tw, px, py, fp)
+        col[gi], label[gi], nrm[gi], shadow[gi] = c, lab, nr, sh
+        code[gi] = cd + torch.where(sh > 0.5, SHADOW_BIT, 0)
+
+    bi = torch.nonzero(is_b).squeeze(1)
+    if bi.numel():
+        pix, bid, lo, ld, tn, axis = binfo
+        w = win_b[bi]
+        box = tw["boxes"][bid[w]]
+        ax = axis[w]
+        local = lo[w] + tn[w, None] * ld[w]
+        sgn = -torch.sign(ld[w].gather(1, ax[:, None]).squeeze(1))
+        ln = torch.zeros((w.numel(), 3), device=dev)
+        ln.scatter_(1, ax[:, None], sgn[:, None])
+        cb, sb = torch.cos(box[:, 6]), torch.sin(box[:, 6])
+        nrm[bi] = torch.stack([cb * ln[:, 0] - sb * ln[:, 1], sb * ln[:, 0] + cb * ln[:, 1], ln[:, 2]], 1)
+        kind = box[:, 11].long()
+        col[bi] = _object_shade(tw, kind, box[:, 7:10], local, ax, box[:, 3:6], tw["tiles"])
+        label[bi] = box[:, 10].long()
+        obj[bi] = kind + 1
+
+    si = torch.nonzero(is_s).squeeze(1)
+    if si.numel():
+        pix, sid, lam_pairs = sinfo
+        w = win_s[si]
+        spr = tw["spheres"][sid[w]]
+        hitp = o[None] + lam_s[si, None] * d[si]
+        nr = (hitp - spr[:, :3]) / spr[:, 3:4]
+        nrm[si] = nr
+        leaf = value_noise(tw["tiles"][2], hitp[:, 0] + hitp[:, 2] * 0.7, hitp[:, 1] - hitp[:, 2] * 0.5, 0.25)
+        col[si] = spr[:, 4:7] * (0.6 + 0.8 * leaf)[:, None]
+        label[si] = spr[:, 7].long()
+        obj[si] = tw["sphere_kind"][sid[w]] + 1
+
+    # lighting: sky ambient + sun (ground gets cast shadows)
+    sun = tw["sun"]
+    ndl = (nrm * sun[None]).sum(1).clamp(min=0)
+    light = 0.48 + 0.72 * ndl * (1 - 0.85 * shadow)
+    col = col * light[:, None]
+    # sky gradient and distance haze
+    elev = d[:, 2] / dnorm
+    hz_c = HORIZON.to(dev)
+    sky = hz_c[None] + (ZENITH.to(dev) - hz_c)[None] * (elev * 2.5).clamp(0, 1)[:, None]
+    dist = torch.where(hit_any, depth * dnorm, torch.zeros_like(depth))
+    haze = (1 - torch.exp(-dist / 380.0))[:, None]
+    col = torch.where(hit_any[:, None], col * (1 - haze) + hz_c[None] * haze, sky)
+    col = col * exposure * torch.tensor(white_balance, device=dev)[None]
+    # mild sensor noise, deterministic per view
+    pixid = torch.arange(n, device=dev, dtype=torch.float32)
+    col = col + (_hash01(pixid, pixid * 0.37, float(noise_seed % 1000)) - 0.5)[:, None] * (3.0 / 255)
+    rgb = (col.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+
+    instance = torch.where((code & (SHADOW_BIT - 1)) < DECOY_ID_OFFSET, code & (SHADOW_BIT - 1),
+                           torch.zeros_like(code))
+    depth_out = torch.where(hit_any, depth, torch.zeros_like(depth))
+    return RenderOutput(
+        rgb=rgb.reshape(H, W, 3).cpu().numpy(),
+        label=label.to(torch.uint8).reshape(H, W).cpu().numpy(),
+        depth=depth_out.reshape(H, W).float().cpu().numpy(),
+        instance=instance.to(torch.int32).reshape(H, W).cpu().numpy(),
+        code=code.to(torch.int32).reshape(H, W).cpu().numpy().astype(np.uint16),
+        obj=obj.to(torch.int32).reshape(H, W).cpu().numpy(),
+    )
+
+
+__all__ = ["RenderOutput", "render_view", "resolve_device", "SHADOW_BIT", "BUILDING", "ROAD", "TERRAIN"]

@@ -1,0 +1,253 @@
+"""Export layer: geo conversion, GeoJSON, GeoTIFF, CSV, figures, report, write_outputs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+
+import numpy as np
+import pytest
+import rasterio
+from pyproj import CRS, Geod, Transformer
+from shapely.geometry import Polygon, box, shape
+
+from pavemap.errors import PavemapError
+from pavemap.export import read_geojson, to_dataframe, write_outputs
+from pavemap.export.geo import local_tangent
+from pavemap.export.geojson import instances_to_geojson, write_geojson
+from pavemap.export.geotiff import BAND_DESCRIPTIONS, write_geotiff
+from pavemap.export.report import build_report_html
+from pavemap.export.sample import sample_inputs
+from pavemap.export.tables import CSV_COLUMNS, write_csv
+from pavemap.types import DefectInstance, GeoOrigin
+
+GEOD = Geod(ellps="WGS84")
+ORIGIN = GeoOrigin(lat=48.1374, lon=11.5755, alt=520.0, heading_deg=90.0)
+
+
+def inst(i: int, poly, cls: int = 0, prio: str = "inspect") -> DefectInstance:
+    return DefectInstance(id=i, cls=cls, polygon=poly, severity_mean=0.2 + 0.1 * cls, severity_max=0.5,
+                          confidence=0.6, observations=3, probability=0.55, area_m2=float(poly.area),
+                          length_m=1.0, centroid=(0.0, 0.0) if poly.is_empty else (poly.centroid.x, poly.centroid.y),
+                          priority=prio)
+
+
+# ------------------------------------------------------------------ geo
+@pytest.mark.parametrize("heading, azimuth", [(90.0, 90.0), (0.0, 0.0), (30.0, 30.0), (200.0, -160.0)])
+def test_world_x_follows_heading(heading, azimuth):
+    lt = local_tangent(GeoOrigin(ORIGIN.lat, ORIGIN.lon, heading_deg=heading))
+    lon, lat = lt.to_lonlat(np.array([100.0]), np.array([0.0]))
+    az, _, dist = GEOD.inv(ORIGIN.lon, ORIGIN.lat, lon[0], lat[0])
+    assert dist == pytest.approx(100.0, abs=1e-3)
+    assert az == pytest.approx(azimuth, abs=1e-3)
+
+
+def test_world_y_is_left_of_x():
+    # heading 90 (x east): +y must point north (right-handed, z up)
+    lt = local_tangent(ORIGIN)
+    lon, lat = lt.to_lonlat(np.array([0.0]), np.array([50.0]))
+    az, _, dist = GEOD.inv(ORIGIN.lon, ORIGIN.lat, lon[0], lat[0])
+    assert dist == pytest.approx(50.0, abs=1e-3) and az == pytest.approx(0.0, abs=1e-3)
+
+
+def test_roundtrip_below_a_millimetre():
+    lt = local_tangent(GeoOrigin(-33.86, 151.2, heading_deg=123.4))
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(-800, 800, 500), rng.uniform(-800, 800, 500)
+    lon, lat = lt.to_lonlat(x, y)
+    x2, y2 = lt.from_lonlat(lon, lat)
+    assert np.max(np.hypot(x2 - x, y2 - y)) < 1e-3
+
+
+def test_bad_origin_is_a_clear_error():
+    with pytest.raises(PavemapError, match="lat"):
+        local_tangent(GeoOrigin(lat=123.0, lon=0.0))
+
+
+# ------------------------------------------------------------------ geojson
+def test_geojson_local_metres():
+    # a clockwise square with a hole: the writer must re-orient it
+    sq = Polygon([(0, 0), (0, 2), (2, 2), (2, 0)], holes=[[(0.5, 0.5), (1.5, 0.5), (1.5, 1.5), (0.5, 1.5)]])
+    fc = instances_to_geojson([inst(7, sq, cls=3, prio="repair now")])
+    assert fc["type"] == "FeatureCollection" and "crs" not in fc
+    assert fc["pavemap"]["coordinates"] == "local" and fc["pavemap"]["geo_origin"] is None
+    f = fc["features"][0]
+    assert f["properties"]["code"] == "D40" and f["properties"]["name"] == "pothole"
+    for key in ("id", "cls", "code", "name", "severity", "severity_max", "confidence", "observations",
+                "probability", "area_m2", "length_m", "priority"):
+        assert key in f["properties"]
+    ext, hole = (np.array(r) for r in f["geometry"]["coordinates"])
+    signed = [0.5 * np.sum(r[:-1, 0] * r[1:, 1] - r[1:, 0] * r[:-1, 1]) for r in (ext, hole)]
+    assert signed[0] > 0 and signed[1] < 0  # RFC 7946 right-hand rule
+    assert shape(f["geometry"]).area == pytest.approx(3.0)
+    assert fc["bbox"] == [0.0, 0.0, 2.0, 2.0]
+
+
+@pytest.mark.parametrize("heading", [90.0, 37.0])
+def test_geojson_lonlat_lands_at_the_right_place(tmp_path, heading):
+    origin = GeoOrigin(ORIGIN.lat, ORIGIN.lon, heading_deg=heading)
+    poly = box(99.0, -1.0, 101.0, 1.0)  # 2 m square centred 100 m along world x
+    p = write_geojson(tmp_path / "d.geojson", [inst(1, poly)], origin)
+    fc = json.loads(p.read_text())
+    assert fc["pavemap"]["coordinates"] == "lonlat"
+    g = shape(fc["features"][0]["geometry"])
+    c = g.centroid
+    az, _, dist = GEOD.inv(origin.lon, origin.lat, c.x, c.y)
+    assert dist == pytest.approx(100.0, abs=0.02) and az == pytest.approx(heading, abs=0.02)
+    ring = np.array(fc["features"][0]["geometry"]["coordinates"][0])
+    assert 0.5 * np.sum(ring[:-1, 0] * ring[1:, 1] - ring[1:, 0] * ring[:-1, 1]) > 0
+    props = fc["features"][0]["properties"]
+    assert props["lon"] == pytest.approx(c.x, abs=1e-6) and props["lat"] == pytest.approx(c.y, abs=1e-6)
+    # read back into world metres
+    layer = read_geojson(p)
+    assert layer.geo_origin == origin
+    assert layer.geometries[0].hausdorff_distance(poly) < 0.003
+
+
+def test_geojson_multipolygon_and_empty():
+    mp = box(0, 0, 1, 1).union(box(3, 0, 4, 1))
+    fc = instances_to_geojson([inst(1, mp), inst(2, Polygon())])
+    assert fc["features"][0]["geometry"]["type"] == "MultiPolygon"
+    assert fc["features"][1]["geometry"] is None
+
+
+def test_read_geojson_errors(tmp_path):
+    bad = tmp_path / "bad.geojson"
+    bad.write_text("{not json")
+    with pytest.raises(PavemapError, match="bad.geojson"):
+        read_geojson(bad)
+    bad.write_text(json.dumps({"type": "Feature"}))
+    with pytest.raises(PavemapError, match="FeatureCollection"):
+        read_geojson(bad)
+
+
+# ------------------------------------------------------------------ geotiff
+def _maps(H=40, W=60, peak=(10, 45)):
+    prob = np.zeros((H, W), np.float32)
+    prob[peak] = 0.9
+    cls = np.zeros((4, H, W), np.float32)
+    cls[2][peak] = 0.7
+    return prob, cls
+
+
+def test_geotiff_local_north_up(tmp_path):
+    prob, cls = _maps()
+    grid = {"x0": -3.0, "y0": 5.0, "res": 0.2, "shape": [40, 60]}
+    p = write_geotiff(tmp_path / "m.tif", prob, cls, grid)
+    with rasterio.open(p) as ds:
+        assert ds.count == 5 and ds.crs is None
+        assert ds.descriptions == BAND_DESCRIPTIONS
+        assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT", "COG") == "COG"
+        a = ds.read()
+        assert ds.transform.e < 0  # north-up
+        r, c = np.unravel_index(np.argmax(a[0]), a[0].shape)
+        assert a[0, r, c] == pytest.approx(0.9) and a[3, r, c] == pytest.approx(0.7)
+        x, y = ds.xy(r, c)  # cell centre
+    assert x == pytest.approx(-3.0 + 45 * 0.2) and y == pytest.approx(5.0 + 10 * 0.2)
+    # the top row of the raster is the largest y (our last row)
+    assert r == 40 - 1 - 10
+
+
+@pytest.mark.parametrize("heading", [90.0, 30.0])
+def test_geotiff_georeferenced(tmp_path, heading):
+    prob, cls = _maps(peak=(20, 30))
+    grid = {"x0": 10.0, "y0": -4.0, "res": 0.25, "shape": [40, 60]}
+    origin = GeoOrigin(ORIGIN.lat, ORIGIN.lon, heading_deg=heading)
+    p = write_geotiff(tmp_path / "g.tif", prob, cls, grid, origin)
+    wx, wy = 10.0 + 30 * 0.25, -4.0 + 20 * 0.25
+    lon_t, lat_t = local_tangent(origin).to_lonlat(np.array([wx]), np.array([wy]))
+    with rasterio.open(p) as ds:
+        assert ds.crs is not None
+        a = ds.read(1)
+        r, c = np.unravel_index(np.argmax(a), a.shape)
+        e, n = ds.xy(r, c)
+        tr = Transformer.from_crs(CRS.from_wkt(ds.crs.to_wkt()), "EPSG:4326", always_xy=True)
+        lon, lat = tr.transform(e, n)
+    _, _, dist = GEOD.inv(lon, lat, lon_t[0], lat_t[0])
+    if heading == 90.0:
+        assert a[r, c] == pytest.approx(0.9) and dist < 1e-3
+    else:  # resampled onto the north-up grid: within one cell
+        assert dist < 0.25 * 0.75
+
+
+def test_geotiff_shape_mismatch(tmp_path):
+    prob, cls = _maps()
+    with pytest.raises(PavemapError, match="grid"):
+        write_geotiff(tmp_path / "x.tif", prob, cls, {"x0": 0, "y0": 0, "res": 0.1, "shape": [10, 10]})
+    assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------ tables
+def test_csv_and_dataframe(tmp_path):
+    items = [inst(2, box(0, 0, 1, 1), 1), inst(1, box(5, 5, 6, 7), 3, "repair now")]
+    p = write_csv(tmp_path / "d.csv", items, ORIGIN)
+    rows = list(csv.DictReader(p.open()))
+    assert [r["id"] for r in rows] == ["1", "2"]
+    assert list(rows[0]) == [*CSV_COLUMNS, "lon", "lat"]
+    assert float(rows[0]["area_m2"]) == pytest.approx(2.0) and rows[0]["code"] == "D40"
+    assert float(rows[0]["x_m"]) == pytest.approx(5.5)
+    df = to_dataframe(items)
+    recs = df.to_dict("records") if hasattr(df, "to_dict") else df
+    assert len(recs) == 2 and "lon" not in recs[0]
+    empty = write_csv(tmp_path / "e.csv", [])
+    assert empty.read_text().strip().split(",")[0] == "id" and len(empty.read_text().splitlines()) == 1
+
+
+# ------------------------------------------------------------------ report + write_outputs
+def test_report_is_self_contained_and_escaped():
+    kw = sample_inputs(5, seed=3)
+    kw["config"]["note"] = "</script><b>x</b>"
+    html = build_report_html(kw["instances"], bev_rgb=kw["bev_rgb"], bev_semantic=kw["bev_semantic"],
+                             mesh_grid=kw["mesh_grid"], prob_map=kw["prob_map"], grid=kw["grid"],
+                             metrics=kw["metrics"], config=kw["config"], detections=kw["detections"])
+    assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", html)
+    assert "@import" not in html and "url(http" not in html
+    assert html.count("</script>") == 2  # the config text did not close a script early
+    assert 'id="defect-count">5<' in html
+    assert html.count('class="d"') == 5 and html.count("<tr data-id=") == 5
+    assert "data:image/jpeg;base64," in html
+
+
+def test_report_without_defects_says_so():
+    dets = [{"frame": 0, "camera": "C", "box": [0, 0, 5, 5], "cls": 0, "conf": 0.3, "kept": False,
+             "reason": "off road"}]
+    html = build_report_html([], detections=dets)
+    assert 'id="no-defects"' in html and "All 1 detections were filtered out (1 off road)" in html
+    assert 'id="defect-count">0<' in html
+    assert "no detections at all" in build_report_html([], detections=[])
+
+
+@pytest.mark.parametrize("geo", [False, True])
+def test_write_outputs_all_files(tmp_path, geo):
+    kw = sample_inputs(6, seed=1, geo=geo, heading_deg=60.0)
+    traj = kw.pop("trajectory")
+    mesh = tmp_path / "stage1" / "road_mesh.ply"
+    mesh.parent.mkdir()
+    mesh.write_text("ply\nformat ascii 1.0\nend_header\n")
+    img = np.full((90, 160, 3), 120, np.uint8)
+    out = tmp_path / "run"
+    paths = write_outputs(out, figures_extra={"sweep": [{"tau_conf": t, "msr": 1 - t} for t in (0.05, 0.1, 0.3)],
+                                              "frames": [{"frame": 0, "camera": "CAM_FRONT", "image": img}]},
+                          mesh_path=mesh, trajectory=traj, progress=False, **kw)
+    for name in ("defects.geojson", "defects.csv", "defect_map.tif", "bev_rgb.png", "bev_semantic.png",
+                 "metrics.json", "road_mesh.ply", "report.html", "figures/bev_overview.png",
+                 "figures/threshold_sweep.png", "figures/frame_000000_CAM_FRONT.png"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    assert paths["report.html"] == out / "report.html"
+    assert not [p for p in out.rglob("*") if ".partial-" in p.name]
+    fc = json.loads((out / "defects.geojson").read_text())
+    assert len(fc["features"]) == 6 and fc["pavemap"]["coordinates"] == ("lonlat" if geo else "local")
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 4  # figures inline
+    with rasterio.open(out / "defect_map.tif") as ds:
+        assert (ds.crs is not None) == geo
+
+
+def test_write_outputs_bad_input(tmp_path):
+    kw = sample_inputs(2, seed=1)
+    kw.pop("trajectory")
+    kw["bev_rgb"] = kw["bev_rgb"][:, :, 0]
+    with pytest.raises(PavemapError, match="bev_rgb"):
+        write_outputs(tmp_path / "o", progress=False, **kw)
+    assert not (tmp_path / "o" / "report.html").exists()
