@@ -251,3 +251,50 @@ def test_write_outputs_bad_input(tmp_path):
     with pytest.raises(PavemapError, match="bev_rgb"):
         write_outputs(tmp_path / "o", progress=False, **kw)
     assert not (tmp_path / "o" / "report.html").exists()
+
+
+def test_write_outputs_no_defects_no_bev(tmp_path):
+    """A run where everything was filtered: every file is still written and the report says so."""
+    grid = {"x0": 0.0, "y0": 0.0, "res": 0.1, "shape": [30, 50]}
+    dets = [{"frame": 3, "camera": "CAM_FRONT", "box": [10, 10, 40, 30], "cls": 3, "conf": 0.4, "kept": False,
+             "reason": "off road", "r_road": 0.1, "mapped": False}]
+    paths = write_outputs(tmp_path, [], np.zeros((30, 50), np.float32), np.zeros((4, 30, 50), np.float32), grid,
+                          None, None, None, None, {"paper": {"filter_rate": 1.0}}, {"preset": "kitti"}, dets,
+                          progress=False)
+    assert json.loads(paths["defects.geojson"].read_text())["features"] == []
+    html = paths["report.html"].read_text()
+    assert "All 1 detections were filtered out" in html
+    assert (tmp_path / "figures" / "bev_overview.png").is_file()
+    with rasterio.open(paths["defect_map.tif"]) as ds:
+        assert ds.read().max() == 0.0 and ds.width == 50 and ds.height == 30
+
+
+def test_select_overlay_frames_prefers_mixed_views():
+    from pavemap.export.figures import select_overlay_frames
+
+    d = [{"frame": 0, "camera": "A", "kept": True}] * 5 + [
+        {"frame": 1, "camera": "B", "kept": True}, {"frame": 1, "camera": "B", "kept": False},
+        {"frame": 2, "camera": "A", "kept": False}]
+    assert select_overlay_frames(d, k=2) == [(1, "B"), (0, "A")]
+
+
+def test_sweep_from_records_and_semantic_colours():
+    from pavemap.export.figures import colour_semantics, sweep_from_records
+    from pavemap.types import SemanticClass
+
+    recs = [{"conf": 0.02, "kept": False, "reason": "low_conf"},
+            {"conf": 0.1, "kept": True, "reason": "kept", "mapped": True},
+            {"conf": 0.2, "kept": False, "reason": "off_road"},
+            {"conf": 0.4, "kept": True, "reason": "kept", "mapped": False},
+            {"conf": None, "kept": False, "reason": "bad_box"}]
+    rows = sweep_from_records(recs, [0.01, 0.05, 0.3])
+    assert [r["tau_conf"] for r in rows] == [0.05, 0.3]  # 0.01 would need the low_conf detection
+    assert rows[0]["detections"] == 3 and rows[0]["filter_rate"] == pytest.approx(1 / 3)
+    assert rows[0]["msr"] == pytest.approx(0.5)
+    assert rows[1] == {"tau_conf": 0.3, "detections": 1, "kept": 1, "filter_rate": 0.0, "orp": 1.0, "msr": 0.0}
+    classes = [SemanticClass(0, "road", road=True), SemanticClass(3, "asphalt patch", road=True),
+               SemanticClass(5, "car", movable=True)]
+    img = colour_semantics(np.array([[0, 3, 5, -1]]), classes)
+    assert img.dtype == np.uint8 and img.shape == (1, 4, 3)
+    assert img[0, 0].tolist() == [128, 64, 128] and img[0, 1].tolist() == [128, 64, 128]
+    assert img[0, 3].tolist() == [0, 0, 0] and img[0, 2].tolist() == [0, 0, 142]

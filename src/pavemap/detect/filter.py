@@ -58,41 +58,47 @@ def box_ratio(mask: np.ndarray, boxes: np.ndarray, scale: float = 1.0) -> np.nda
 def sanitize(seq: Sequence, detections: list[Detection]) -> tuple[list[Detection | None], list[str]]:
     """Check each detection against the sequence. Returns (clipped detection or None, reason) per input.
 
-    Reasons: ``ok`` or one of INVALID_REASONS. Boxes are clipped to the image; a box with no
-    area left is ``outside_image``.
+    Reasons: ``ok`` or one of INVALID_REASONS (first failing check wins, in that order). Boxes
+    are clipped to the image; a box with no area left is ``outside_image``. Vectorised over boxes.
     """
+    n = len(detections)
     frames = seq.frame_by_index()
-    out: list[Detection | None] = []
-    reasons: list[str] = []
-    for d in detections:
-        reason = "ok"
-        frame = frames.get(int(d.frame)) if _is_int(d.frame) else None
-        box = np.asarray(d.box, dtype=np.float64) if len(d.box) == 4 else np.full(4, np.nan)
-        if frame is None:
-            reason = "unknown_frame"
-        elif d.camera not in frame.views:
-            reason = "unknown_camera"
-        elif not np.all(np.isfinite(box)):
-            reason = "bad_box"
-        elif box[2] < box[0] or box[3] < box[1]:
-            reason = "inverted_box"
-        elif not _is_int(d.cls) or not 0 <= int(d.cls) < NUM_DEFECT_CLASSES:
-            reason = "unknown_cls"
-        elif not isinstance(d.conf, int | float) or not math.isfinite(d.conf) or not 0.0 <= d.conf <= 1.0:
-            reason = "bad_conf"
-        clipped = None
-        if reason == "ok":
-            cam = seq.cameras[d.camera]
-            x1, x2 = np.clip(box[[0, 2]], 0.0, float(cam.width))
-            y1, y2 = np.clip(box[[1, 3]], 0.0, float(cam.height))
-            if x2 - x1 <= 0.0 or y2 - y1 <= 0.0:
-                reason = "outside_image"
-            else:
-                clipped = Detection(int(d.frame), d.camera, (float(x1), float(y1), float(x2), float(y2)),
-                                    int(d.cls), float(d.conf))
-        out.append(clipped)
-        reasons.append(reason)
-    return out, reasons
+    views = {(f.index, c) for f in seq.frames for c in f.views}
+    frame_ok = np.array([_is_int(d.frame) and int(d.frame) in frames for d in detections], dtype=bool)
+    cam_ok = np.array([(d.frame, d.camera) in views for d in detections], dtype=bool)
+    box = np.array([_box4(d.box) for d in detections], dtype=np.float64).reshape(n, 4)
+    cls_ok = np.array([_is_int(d.cls) and 0 <= int(d.cls) < NUM_DEFECT_CLASSES for d in detections], dtype=bool)
+    conf = np.array([float(d.conf) if isinstance(d.conf, int | float | np.number) else np.nan for d in detections],
+                    dtype=np.float64)
+    size = np.array([[seq.cameras[d.camera].width, seq.cameras[d.camera].height] if d.camera in seq.cameras
+                     else [0, 0] for d in detections], dtype=np.float64).reshape(n, 2)
+    finite = np.isfinite(box).all(1)
+    with np.errstate(invalid="ignore"):
+        inverted = finite & ((box[:, 2] < box[:, 0]) | (box[:, 3] < box[:, 1]))
+        clipped = np.stack([np.clip(box[:, 0], 0, size[:, 0]), np.clip(box[:, 1], 0, size[:, 1]),
+                            np.clip(box[:, 2], 0, size[:, 0]), np.clip(box[:, 3], 0, size[:, 1])], 1)
+        empty = (clipped[:, 2] - clipped[:, 0] <= 0) | (clipped[:, 3] - clipped[:, 1] <= 0)
+        conf_ok = np.isfinite(conf) & (conf >= 0.0) & (conf <= 1.0)
+    checks = [(~frame_ok, "unknown_frame"), (~cam_ok, "unknown_camera"), (~finite, "bad_box"),
+              (inverted, "inverted_box"), (~cls_ok, "unknown_cls"), (~conf_ok, "bad_conf"),
+              (empty, "outside_image")]
+    reason = np.full(n, "ok", dtype=object)
+    for bad, name in reversed(checks):  # reversed: the first failing check overwrites the later ones
+        reason[bad] = name
+    out: list[Detection | None] = [
+        Detection(int(d.frame), d.camera, tuple(float(v) for v in clipped[i]), int(d.cls), float(d.conf))
+        if reason[i] == "ok" else None
+        for i, d in enumerate(detections)
+    ]
+    return out, [str(r) for r in reason]
+
+
+def _box4(b: object) -> list[float]:
+    try:
+        v = [float(x) for x in b]  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        return [np.nan] * 4
+    return v if len(v) == 4 else [np.nan] * 4
 
 
 def _is_int(v: object) -> bool:

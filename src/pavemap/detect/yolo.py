@@ -269,7 +269,7 @@ def train_detector(
             project=str(Path(project).resolve()),
             name=name,
             exist_ok=True,
-            pretrained=False if str(model).endswith((".yaml", ".yml")) else True,
+            pretrained=not str(model).endswith((".yaml", ".yml")),
             workers=workers,
             cache=cache,
             plots=plots,

@@ -7,6 +7,7 @@ Every file is written under a temporary name and renamed, so a partial file neve
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -14,14 +15,13 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from pavemap.errors import PavemapError
-from pavemap.export.figures import fig_bev_overview, fig_frame_overlay, fig_threshold_sweep
+from pavemap.errors import PavemapError, SequenceError
 from pavemap.export.geojson import instances_to_geojson, read_geojson, write_geojson
-from pavemap.export.geotiff import write_geotiff
-from pavemap.export.report import write_report
 from pavemap.export.tables import to_dataframe, write_csv
 from pavemap.io.atomic import atomic_path, atomic_write_json
-from pavemap.types import DefectInstance, GeoOrigin
+from pavemap.types import DefectInstance, GeoOrigin, Sequence
+
+log = logging.getLogger("pavemap")
 
 
 def write_png(path: str | os.PathLike, img: np.ndarray) -> Path:
@@ -32,7 +32,7 @@ def write_png(path: str | os.PathLike, img: np.ndarray) -> Path:
     if a.dtype != np.uint8:
         raise PavemapError(f"{path}: image must be uint8, got {a.dtype}")
     with atomic_path(path) as tmp:
-        Image.fromarray(np.ascontiguousarray(a)).save(tmp, format="PNG")
+        Image.fromarray(np.ascontiguousarray(a)).save(tmp, format="PNG", compress_level=4)
     return Path(path)
 
 
@@ -50,25 +50,66 @@ def _check_bev(name: str, img: np.ndarray | None, mesh_grid: dict | None) -> np.
     return a
 
 
+def _opt(output: object | None, name: str, default):
+    """A field of the output settings (an OutputConfig dataclass or a plain dict)."""
+    if output is None:
+        return default
+    if isinstance(output, dict):
+        return output.get(name, default)
+    return getattr(output, name, default)
+
+
+def _overlay_frames(seq: Sequence, detections: list[dict], k: int) -> list[dict]:
+    """Load the camera images of the ``k`` views best worth an overlay (missing images are skipped)."""
+    from pavemap.export.figures import select_overlay_frames
+    from pavemap.io.sequence import load_rgb
+
+    frames = seq.frame_by_index()
+    out = []
+    for f, cam in select_overlay_frames(detections, k):
+        view = frames[f].views.get(cam) if f in frames else None
+        if view is None:
+            continue
+        try:
+            out.append({"frame": f, "camera": cam, "image": load_rgb(seq.path(view.image))})
+        except (SequenceError, ValueError) as e:
+            log.warning("overlay of frame %d %s skipped: %s", f, cam, e)
+    return out
+
+
 def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], prob_map: np.ndarray,
                   class_maps: np.ndarray, grid: dict, bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
                   mesh_grid: dict | None, geo_origin: GeoOrigin | None, metrics: dict | None,
                   config: dict | None, detections: list[dict] | None, figures_extra: dict | None = None, *,
+                  seq: Sequence | None = None, output: object | None = None,
                   mesh_path: str | os.PathLike | None = None, trajectory: np.ndarray | None = None,
-                  title: str = "pavemap defect report", progress: bool = True) -> dict[str, Path]:
+                  title: str | None = None, progress: bool = True) -> dict[str, Path]:
     """Write every output of a run into ``out_dir``; returns {name: path}.
 
     Arrays: ``prob_map`` (H, W) float and ``class_maps`` (4, H, W) float on ``grid``
     {"x0","y0","res","shape"} (rows go +y); ``bev_rgb``/``bev_semantic`` (ny, nx, 3) uint8 on ``mesh_grid``.
     ``detections``: records {frame, camera, box, cls, conf, kept, reason, r_road, mapped}.
     ``figures_extra`` (all optional):
-      - "sweep": rows [{"tau_conf": .., metric: ..}] -> figures/threshold_sweep.png (Figure 13 style)
+      - "sweep": rows [{"tau_conf": .., metric: ..}] -> figures/threshold_sweep.png (Figure 13 style);
+        default: computed from the detection records at ``output.sweep_tau_conf``
       - "frames": [{"frame": int, "camera": str, "image": (H, W, 3) uint8}] -> figures/frame_*.png overlays
-        of that view's detections (pick views with ``figures.select_overlay_frames``)
+        of that view's detections; default: the ``output.overlay_frames`` best views, loaded from ``seq``
       - "images": {caption: png path} of figures made elsewhere, embedded in the report
+    ``seq``: the Sequence (overlay images, trajectory and name for the report).
+    ``output``: OutputConfig or dict: figures (bool), report (bool), overlay_frames (int), sweep_tau_conf.
     ``mesh_path``: stage 1's road_mesh.ply, copied into ``out_dir`` when it lives elsewhere.
-    ``trajectory`` (F, 2|3) world metres, drawn on the report map.
+    ``trajectory`` (F, 2|3) world metres, drawn on the report map (default: the sequence's).
     """
+    # matplotlib and rasterio load here, not at import: `import pavemap` stays fast for the CLI
+    from pavemap.export.figures import (
+        fig_bev_overview,
+        fig_frame_overlay,
+        fig_threshold_sweep,
+        sweep_from_records,
+    )
+    from pavemap.export.geotiff import write_geotiff
+    from pavemap.export.report import write_report
+
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -84,10 +125,23 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
     if unknown:
         raise PavemapError(f"figures_extra: unknown key(s) {sorted(unknown)}; expected sweep, frames, images")
     detections = list(detections) if detections is not None else None
+    want_figures = bool(_opt(output, "figures", True))
+    want_report = bool(_opt(output, "report", True))
+    if title is None:
+        title = f"pavemap defect report — {seq.name}" if seq is not None and seq.name else "pavemap defect report"
+    if trajectory is None and seq is not None and seq.frames:
+        trajectory = seq.trajectory()
+    sweep = extra.get("sweep")
+    if sweep is None and detections and _opt(output, "sweep_tau_conf", None):
+        sweep = sweep_from_records(detections, list(_opt(output, "sweep_tau_conf", ())))
+    frames = extra.get("frames")
+    if frames is None and seq is not None and detections and want_figures:
+        k = int(_opt(output, "overlay_frames", 3) or 0)
+        frames = _overlay_frames(seq, detections, k) if k > 0 else []
+    frames = list(frames or []) if want_figures else []
     paths: dict[str, Path] = {}
     figs: dict[str, Path] = {}
-    frames = list(extra.get("frames") or [])
-    steps = 6 + len(frames) + bool(extra.get("sweep")) + (mesh_path is not None)
+    steps = 4 + (mesh_path is not None) + want_report + want_figures * (1 + len(frames) + bool(sweep))
     bar = tqdm(total=steps, desc="outputs", unit="file", disable=not progress, leave=False)
 
     def step(name: str) -> None:
@@ -121,31 +175,34 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
             step("road_mesh.ply")
         elif (out / "road_mesh.ply").is_file():
             paths["road_mesh.ply"] = out / "road_mesh.ply"
-        figs["Figure 11 layout: BEV RGB, semantics, defects, statistics"] = fig_bev_overview(
-            out / "figures" / "bev_overview.png", bev_rgb, bev_semantic, mesh_grid, instances, metrics,
-            prob_map, grid, title=title)
-        step("figures/bev_overview.png")
-        if extra.get("sweep"):
-            figs["confidence threshold sweep (Figure 13 style)"] = fig_threshold_sweep(
-                out / "figures" / "threshold_sweep.png", list(extra["sweep"]))
-            step("figures/threshold_sweep.png")
-        for fr in frames:
-            f, cam = int(fr["frame"]), str(fr["camera"])
-            dets = [d for d in (detections or []) if int(d["frame"]) == f and str(d["camera"]) == cam]
-            name = f"frame_{f:06d}_{cam}.png"
-            figs[f"frame {f}, {cam}: kept (solid) and filtered (dashed) detections"] = fig_frame_overlay(
-                out / "figures" / name, fr["image"], dets, title=f"frame {f} · {cam}")
-            step(f"figures/{name}")
+        if want_figures:
+            figs["Figure 11 layout: BEV RGB, semantics, defects, statistics"] = fig_bev_overview(
+                out / "figures" / "bev_overview.png", bev_rgb, bev_semantic, mesh_grid, instances, metrics,
+                prob_map, grid, title=title)
+            step("figures/bev_overview.png")
+            if sweep:
+                figs["detections against the confidence threshold (Figure 13 style)"] = fig_threshold_sweep(
+                    out / "figures" / "threshold_sweep.png", list(sweep))
+                step("figures/threshold_sweep.png")
+            for fr in frames:
+                f, cam = int(fr["frame"]), str(fr["camera"])
+                dets = [d for d in (detections or []) if int(d["frame"]) == f and str(d["camera"]) == cam
+                        and d.get("reason") != "low_conf"]
+                name = f"frame_{f:06d}_{cam}.png"
+                figs[f"frame {f}, {cam}: kept (solid) and filtered (dashed) detections"] = fig_frame_overlay(
+                    out / "figures" / name, fr["image"], dets, title=f"frame {f} · {cam}")
+                step(f"figures/{name}")
         for caption, p in (extra.get("images") or {}).items():
             figs[str(caption)] = Path(p)
         for k, p in figs.items():
             paths[f"figure:{k}"] = p
         files = {k: p for k, p in paths.items() if not k.startswith("figure:")}
-        paths["report.html"] = write_report(
-            out, instances, bev_rgb=bev_rgb, bev_semantic=bev_semantic, mesh_grid=mesh_grid, prob_map=prob_map,
-            grid=grid, geo_origin=geo_origin, metrics=metrics, config=config, detections=detections,
-            figures=figs, files=files, trajectory=trajectory, title=title)
-        step("report.html")
+        if want_report:
+            paths["report.html"] = write_report(
+                out, instances, bev_rgb=bev_rgb, bev_semantic=bev_semantic, mesh_grid=mesh_grid,
+                prob_map=prob_map, grid=grid, geo_origin=geo_origin, metrics=metrics, config=config,
+                detections=detections, figures=figs, files=files, trajectory=trajectory, title=title)
+            step("report.html")
     except PermissionError as e:
         raise PavemapError(f"{out}: cannot write outputs ({e.strerror or e}: {e.filename})") from None
     except OSError as e:
@@ -153,6 +210,19 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
     finally:
         bar.close()
     return paths
+
+
+def __getattr__(name: str):
+    # lazy re-exports of the heavy writers (matplotlib / rasterio)
+    if name == "write_geotiff":
+        from pavemap.export.geotiff import write_geotiff
+
+        return write_geotiff
+    if name == "write_report":
+        from pavemap.export.report import write_report
+
+        return write_report
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 __all__ = ["instances_to_geojson", "read_geojson", "to_dataframe", "write_csv", "write_geojson", "write_geotiff",

@@ -34,11 +34,12 @@ KEY_METRICS = ("filter_rate", "orp", "msr", "coverage", "obs_per_vertex", "sever
                "precision", "recall", "f1", "loc_error_m", "total_s")
 
 
-def save_figure(fig: plt.Figure, path: str | os.PathLike, dpi: int = 110) -> Path:
-    """Save ``fig`` as PNG atomically and close it."""
+def save_figure(fig: plt.Figure, path: str | os.PathLike, dpi: int = 110, tight: bool = True) -> Path:
+    """Save ``fig`` as PNG atomically and close it (``tight`` costs a second render)."""
     try:
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight", facecolor="white")
+            fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight" if tight else None, facecolor="white",
+                        pil_kwargs={"compress_level": 4})
     finally:
         plt.close(fig)
     return Path(path)
@@ -139,6 +140,17 @@ def fig_bev_overview(path: str | os.PathLike, bev_rgb: np.ndarray | None, bev_se
         slots = (gs[0, 0], gs[0, 1], gs[1, 0], gs[1, 1])
         stats_sub = (2, 1)
 
+    def shrink(img: np.ndarray | None, limit: int = 1100) -> np.ndarray | None:
+        # a panel is < 1000 px wide at this dpi: decimating first makes Agg's resampling cheap
+        if img is None:
+            return None
+        step = int(np.ceil(max(img.shape[:2]) / limit))
+        return img[::step, ::step] if step > 1 else img
+
+    bev_rgb, bev_semantic = shrink(bev_rgb), shrink(bev_semantic)
+    if prob_map is not None:
+        prob_map = shrink(np.asarray(prob_map))
+
     def bev_panel(ax: plt.Axes, img: np.ndarray | None, label: str) -> None:
         if img is not None and ext is not None:
             ax.imshow(img, origin="lower", extent=ext, interpolation="nearest")
@@ -209,7 +221,8 @@ def fig_bev_overview(path: str | os.PathLike, bev_rgb: np.ndarray | None, bev_se
                  transform=axt.transAxes)
     if title:
         fig.suptitle(title, fontsize=14, y=0.995)
-    return save_figure(fig, path)
+    fig.subplots_adjust(left=0.05, right=0.98, top=0.96 if title else 0.98, bottom=0.04)
+    return save_figure(fig, path, tight=False)
 
 
 def fig_threshold_sweep(path: str | os.PathLike, rows: list[dict], x_key: str = "tau_conf",
@@ -257,13 +270,16 @@ def fig_frame_overlay(path: str | os.PathLike, image: np.ndarray, detections: li
     fig, ax = plt.subplots(figsize=(10, 10 * h / max(w, 1) + 0.6))
     ax.imshow(img)
     for d in detections:
-        x1, y1, x2, y2 = (float(v) for v in d["box"])
-        code = DEFECT_CODES[int(d["cls"])]
+        box = d.get("box") or ()
+        if len(box) != 4 or any(v is None or not np.isfinite(float(v)) for v in box):
+            continue  # an invalid box (the filter's record says why) has nothing to draw
+        x1, y1, x2, y2 = (float(v) for v in box)
+        code = DEFECT_CODES[int(d["cls"])] if 0 <= int(d.get("cls", -1)) < len(DEFECT_CODES) else "D00"
         kept = bool(d.get("kept", True))
         col = CLASS_COLOURS[code]
         ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=col, lw=2.2 if kept else 1.6,
                                ls="-" if kept else "--"))
-        label = f"{code} {float(d.get('conf', 0)):.2f}"
+        label = f"{code} {float(d.get('conf') or 0.0):.2f}"
         if not kept:
             label += f" ✗ {d.get('reason') or 'filtered'}"
         elif d.get("mapped") is False:
@@ -271,17 +287,78 @@ def fig_frame_overlay(path: str | os.PathLike, image: np.ndarray, detections: li
         ax.text(x1, max(y1 - 4, 8), label, color="black", fontsize=8, va="bottom",
                 bbox={"fc": col if kept else "white", "ec": col, "alpha": 0.85, "pad": 1.5})
     n_kept = sum(bool(d.get("kept", True)) for d in detections)
-    ax.set_title(title or f"{n_kept} kept (solid), {len(detections) - n_kept} filtered (dashed)")
+    counts = f"{n_kept} kept (solid), {len(detections) - n_kept} filtered (dashed)"
+    ax.set_title(f"{title} — {counts}" if title else counts)
     ax.set_xlim(0, w)
     ax.set_ylim(h, 0)
     ax.axis("off")
     return save_figure(fig, path, dpi=90)
 
 
+def sweep_from_records(records: list[dict], taus: list[float]) -> list[dict]:
+    """Figure 13 rows from the per-detection records alone: for each confidence threshold, the
+    detections above it, the filter rate FR, on-road precision ORP = 1 - FR and the mapping success
+    rate MSR (SPEC §4). The road filter and the mapping of one detection do not depend on the others,
+    so raising the threshold only drops records; a threshold below the run's own is skipped, because
+    the detections between the two were never filtered or mapped (reason ``low_conf``).
+    """
+    conf = np.array([np.nan if r.get("conf") is None else float(r["conf"]) for r in records], dtype=np.float64)
+    reason = np.array([str(r.get("reason") or ("kept" if r.get("kept") else "off_road")) for r in records])
+    kept = np.array([bool(r.get("kept")) for r in records])
+    mapped = np.array([bool(r.get("mapped")) for r in records])
+    evaluated = np.isin(reason, ("kept", "off_road"))
+    low = reason == "low_conf"
+    rows = []
+    for t in sorted(float(x) for x in taus):
+        if np.any(low & (conf >= t)):
+            continue
+        sel = evaluated & (conf >= t)
+        n = int(sel.sum())
+        k = int((sel & kept).sum())
+        rows.append({"tau_conf": t, "detections": n, "kept": k, "filter_rate": (n - k) / n if n else 0.0,
+                     "orp": k / n if n else 0.0, "msr": int((sel & kept & mapped).sum()) / k if k else 0.0})
+    return rows
+
+
+# Cityscapes-like colours for common class names; other names get a stable hashed colour
+_NAMED = {"road": (128, 64, 128), "lane_marking": (255, 255, 255), "lane marking": (255, 255, 255),
+          "crosswalk": (230, 230, 230), "manhole": (90, 90, 140), "sidewalk": (244, 35, 232),
+          "terrain": (152, 251, 152), "vegetation": (107, 142, 35), "car": (0, 0, 142), "vehicle": (0, 0, 142),
+          "person": (220, 20, 60), "pedestrian": (220, 20, 60), "building": (70, 70, 70), "sky": (70, 130, 180),
+          "curb": (196, 196, 196), "other": (80, 80, 80), "ego": (0, 0, 0)}
+
+
+def colour_semantics(labels: np.ndarray, classes: list) -> np.ndarray:
+    """(ny, nx) int class ids (-1 or unknown = none) -> (ny, nx, 3) uint8 colours (black where none).
+
+    ``classes``: the sequence's SemanticClass table; road-like classes without a known name are purple.
+    """
+    import hashlib
+
+    lab = np.asarray(labels)
+    pal = np.zeros((257, 3), dtype=np.uint8)  # entry 256: no label
+    for c in classes:
+        if not 0 <= int(c.id) <= 255:
+            continue
+        name = str(c.name).lower()
+        if name in _NAMED:
+            col = _NAMED[name]
+        elif getattr(c, "road", False):
+            col = (128, 64, 128)
+        else:
+            h = hashlib.md5(name.encode()).digest()
+            col = (h[0], h[1], h[2])
+        pal[int(c.id)] = col
+    idx = np.where((lab < 0) | (lab > 255), 256, lab).astype(np.int64)
+    return pal[idx]
+
+
 def select_overlay_frames(detections: list[dict], k: int = 3) -> list[tuple[int, str]]:
     """The (frame, camera) views worth an overlay: most detections, preferring a mix of kept/filtered."""
     per: dict[tuple[int, str], list[int]] = {}
     for d in detections:
+        if d.get("reason") == "low_conf":  # below the detector threshold: not a detection to show
+            continue
         key = (int(d["frame"]), str(d["camera"]))
         c = per.setdefault(key, [0, 0])
         c[0 if d.get("kept", True) else 1] += 1
@@ -289,6 +366,6 @@ def select_overlay_frames(detections: list[dict], k: int = 3) -> list[tuple[int,
     return score[:k]
 
 
-__all__ = ["CLASS_COLOURS", "PRIORITY_COLOURS", "draw_instances", "fig_bev_overview", "fig_frame_overlay",
-           "fig_threshold_sweep", "flatten_metrics", "format_value", "geometry_path", "grid_extent",
-           "key_metric_lines", "save_figure", "select_overlay_frames"]
+__all__ = ["CLASS_COLOURS", "PRIORITY_COLOURS", "colour_semantics", "draw_instances", "fig_bev_overview",
+           "fig_frame_overlay", "fig_threshold_sweep", "flatten_metrics", "format_value", "geometry_path",
+           "grid_extent", "key_metric_lines", "save_figure", "select_overlay_frames", "sweep_from_records"]

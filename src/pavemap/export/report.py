@@ -49,7 +49,7 @@ def _data_uri(img: np.ndarray, fmt: str = "PNG", quality: int = 88) -> str:
         im.convert("RGB").save(buf, format="JPEG", quality=quality)
         mime = "image/jpeg"
     else:
-        im.save(buf, format="PNG", optimize=False)
+        im.save(buf, format="PNG", compress_level=4)
         mime = "image/png"
     return f"data:{mime};base64,{base64.b64encode(buf.getvalue()).decode('ascii')}"
 

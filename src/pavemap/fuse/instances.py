@@ -92,8 +92,9 @@ def build_instances(
     # Distinct detections per component.
     pl = lab[pair_vid] if len(pair_vid) else np.zeros(0, dtype=np.int64)
     m = pl > 0
-    uniq = np.unique(np.stack([pair_det[m], pl[m]], 1), axis=0) if m.any() else np.zeros((0, 2), np.int64)
-    n_det = np.bincount(uniq[:, 1], minlength=k + 1) if len(uniq) else np.zeros(k + 1, np.int64)
+    # 1-D keys: np.unique on rows (axis=0) is an order of magnitude slower.
+    uniq = np.unique(pair_det[m].astype(np.int64) * (k + 1) + pl[m])
+    n_det = np.bincount(uniq % (k + 1), minlength=k + 1)
     keep = n_det >= min_obs
     keep[0] = False
     if not keep[1:].any():

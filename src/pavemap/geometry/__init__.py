@@ -5,12 +5,15 @@ from pavemap.geometry.heightfield import (
     HeightField,
     HitCells,
     RayHit,
+    SurfaceBounds,
     find_hits,
     hits_to_rayhit,
     intersect_rays,
+    surface_bounds,
 )
 
 __all__ = [
-    "HeightField", "HitCells", "RayHit", "find_hits", "hits_to_rayhit", "intersect_rays",
+    "HeightField", "HitCells", "RayHit", "SurfaceBounds", "find_hits", "hits_to_rayhit", "intersect_rays",
+    "surface_bounds",
     "pixel_grid", "pixel_rays", "project",
 ]

@@ -204,18 +204,44 @@ def _empty_hit(origins: torch.Tensor) -> RayHit:
                   torch.zeros(n, 3, dtype=torch.long, device=origins.device), origins.new_zeros(n, 3))
 
 
+@dataclass
+class SurfaceBounds:
+    """What the march needs beyond the heights: flat heights (ny*nx,), flat crop (ny*nx,), global
+    min/max (padded) and the dilated tile maxima (tny, tnx) for empty-space skipping."""
+
+    H: torch.Tensor
+    V: torch.Tensor
+    hmin: torch.Tensor
+    hmax: torch.Tensor
+    tmax: torch.Tensor
+    tile: int
+
+
 @torch.no_grad()
-def _find_roots(hf: HeightField, o: torch.Tensor, d: torch.Tensor, max_dist: float, step: float,
-                chunk: int, refine_iters: int):
-    """Without autograd: (idx of hit rays, lam0, i, j, lower) for the first crossing of each ray."""
-    dev, dt = o.device, o.dtype
-    n = o.shape[0]
-    H = hf.heights.detach().to(dt).reshape(-1)
-    V = hf.valid.reshape(-1).to(dev)
+def surface_bounds(hf: HeightField, dtype: torch.dtype | None = None, tile: int = 16) -> SurfaceBounds:
+    """Precompute the march's bounds once per height field (O(grid)); reuse across many ray batches."""
+    H = hf.heights.detach().to(dtype or hf.heights.dtype).reshape(-1)
+    V = hf.valid.reshape(-1).to(H.device)
     hv = H[V]
     hmin, hmax = hv.min(), hv.max()
     pad = 1e-6 * (1.0 + torch.maximum(hmin.abs(), hmax.abs()))
-    hmin, hmax = hmin - pad, hmax + pad
+    # The max over tiles of TILE x TILE vertices, dilated by one tile, bounds the surface within
+    # TILE-1 cells (Chebyshev) of any point of a tile.
+    Hm = torch.where(V, H, torch.full_like(H, -torch.inf)).reshape(1, 1, hf.ny, hf.nx)
+    tmax = F.max_pool2d(Hm, tile, stride=tile, ceil_mode=True)
+    tmax = F.max_pool2d(tmax, 3, stride=1, padding=1)[0, 0]
+    return SurfaceBounds(H, V, hmin - pad, hmax + pad, tmax, tile)
+
+
+@torch.no_grad()
+def _find_roots(hf: HeightField, o: torch.Tensor, d: torch.Tensor, max_dist: float, step: float,
+                chunk: int, refine_iters: int, bounds: SurfaceBounds | None = None):
+    """Without autograd: (idx of hit rays, lam0, i, j, lower) for the first crossing of each ray."""
+    dev, dt = o.device, o.dtype
+    n = o.shape[0]
+    if bounds is None or bounds.H.dtype != dt:
+        bounds = surface_bounds(hf, dt)
+    H, V, hmin, hmax = bounds.H, bounds.V, bounds.hmin, bounds.hmax
 
     lo = torch.zeros(n, dtype=dt, device=dev)
     hi = torch.full((n,), float(max_dist), dtype=dt, device=dev)
@@ -261,10 +287,7 @@ def _find_roots(hf: HeightField, o: torch.Tensor, d: torch.Tensor, max_dist: flo
     # Empty-space skipping: the max height over tiles of TILE x TILE cells, dilated by one tile, bounds
     # the surface within TILE-1 cells (Chebyshev) of any point. Where the ray is above that bound it
     # advances by a safe step; near the surface it samples at `step`-cell spacing.
-    tile = 16
-    Hm = torch.where(V, H, torch.full_like(H, -torch.inf)).reshape(1, 1, hf.ny, hf.nx)
-    tmax = F.max_pool2d(Hm, tile, stride=tile, ceil_mode=True)
-    tmax = F.max_pool2d(tmax, 3, stride=1, padding=1)[0, 0]
+    tile, tmax = bounds.tile, bounds.tmax
     tny, tnx = tmax.shape
     reach = float(tile - 1)
 
@@ -375,11 +398,13 @@ def find_hits(
     chunk: int = 16,
     refine_iters: int = 40,
     max_rays_per_batch: int = 262144,
+    bounds: SurfaceBounds | None = None,
 ) -> HitCells:
     """The no-autograd half of :func:`intersect_rays`: which rays hit, where, on which triangle.
 
     Split out so a caller can find the triangles on cached heights, then evaluate fresh heights only
     at the vertices it needs and call :func:`hits_to_rayhit` (what stage-1 training does).
+    ``bounds`` from :func:`surface_bounds` (same heights, dtype of ``origins``) saves O(grid) work per call.
     """
     n = origins.shape[0]
     dev = origins.device
@@ -387,10 +412,12 @@ def find_hits(
         e = torch.zeros(0, dtype=torch.long, device=dev)
         return HitCells(e, origins.new_zeros(0).detach(), e, e.clone(), torch.zeros(0, dtype=torch.bool, device=dev))
     o_d, d_d = origins.detach(), dirs.detach()
+    if bounds is None or bounds.H.dtype != o_d.dtype:
+        bounds = surface_bounds(hf, o_d.dtype)
     parts = []
     for s in range(0, n, max_rays_per_batch):
         e = min(n, s + max_rays_per_batch)
-        idx, lam0, i, j, lower = _find_roots(hf, o_d[s:e], d_d[s:e], max_dist, step, chunk, refine_iters)
+        idx, lam0, i, j, lower = _find_roots(hf, o_d[s:e], d_d[s:e], max_dist, step, chunk, refine_iters, bounds)
         parts.append((idx + s, lam0, i, j, lower))
     return HitCells(*(torch.cat([p[k] for p in parts]) for k in range(5)))
 

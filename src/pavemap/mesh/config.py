@@ -43,7 +43,6 @@ class MeshConfig:
     camera_height: float = 1.5  # initial road plane below the median camera centre (m)
     init_height_search: bool = True  # refine the initial plane height by multi-view colour agreement
     max_dist: float = 80.0  # longest ray considered (m)
-    smooth_edges_per_step: int = 8192  # edges sampled per step for the Laplacian term
     height_refresh_steps: int = 16  # steps between full-grid height re-evaluations used by the march
     resume: bool = True  # continue from DIR/checkpoint.pt when it matches
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up

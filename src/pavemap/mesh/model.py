@@ -98,6 +98,9 @@ class HeightMLP(nn.Module):
         d = 4 * levels + 2
         self.mlp0 = _mlp([d, hidden, hidden, hidden, hidden])
         self.mlp1 = _mlp([d + hidden, hidden, hidden, hidden, 1])
+        # Start as the flat initial plane: a random MLP would add a random relief of ~0.1 m.
+        nn.init.zeros_(self.mlp1[-1].weight)
+        nn.init.zeros_(self.mlp1[-1].bias)
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
         """p (N, 2) normalised x, y -> height offsets (N,)."""
@@ -128,13 +131,6 @@ class RoadMeshModel(nn.Module):
         self.height_mlp = HeightMLP(levels, hidden)
         self.rgb = nn.Parameter(0.01 * torch.randn(vid.numel(), 3, generator=generator))
         self.sem = nn.Parameter(torch.zeros(vid.numel(), num_classes))
-        # Grid edges (right and up neighbours) between kept vertices, compact ids: the Laplacian term.
-        v = grid.valid
-        flat = np.arange(grid.nx * grid.ny).reshape(grid.ny, grid.nx)
-        er = np.stack([flat[:, :-1][v[:, :-1] & v[:, 1:]], flat[:, 1:][v[:, :-1] & v[:, 1:]]], 1)
-        eu = np.stack([flat[:-1, :][v[:-1, :] & v[1:, :]], flat[1:, :][v[:-1, :] & v[1:, :]]], 1)
-        e = torch.from_numpy(np.concatenate([er, eu]).astype(np.int64))
-        self.register_buffer("edges", lut[e])
 
     @property
     def num_vertices(self) -> int:

@@ -2,7 +2,7 @@
 
 Each optimizer step samples ``pixels_per_step`` pixels from all training views, finds their
 triangles on a cached copy of the heights (no autograd), evaluates the height MLP only at the
-vertices those triangles and a sample of grid edges need, and back-propagates through one exact
+vertices of those triangles, and back-propagates through one exact
 Newton step per ray (:func:`pavemap.geometry.hits_to_rayhit`). The full-grid heights used by the
 march are refreshed every ``height_refresh_steps`` steps. Losses and weights are the SPEC's:
 ``L = L_rgb + 0.5 L_sem + lambda_depth L_depth + 1.0 L_smooth`` over valid pixels.
@@ -21,7 +21,7 @@ from torch.nn import functional as F  # noqa: N812
 from tqdm.auto import tqdm
 
 from pavemap.errors import PavemapError
-from pavemap.geometry import HeightField, find_hits, hits_to_rayhit
+from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, surface_bounds
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
 from pavemap.mesh.model import RoadMesh, RoadMeshModel, build_grid
@@ -63,46 +63,53 @@ def corrected_poses(T0: torch.Tensor, delta: torch.Tensor | None) -> torch.Tenso
     return torch.cat([top, bottom], dim=1)
 
 
-def _plane_search(pool: PixelPool, z0: float, res: float, device: torch.device, n_max: int = 200000,
-                  span: float = 1.0, steps: int = 41, seed: int = 0) -> float:
+def _plane_search(pool: PixelPool, z0: float, res: float, n_max: int = 60000, seed: int = 0) -> float:
     """Initial road height: the plane z0 + delta where the views agree best on colour (min per-cell variance).
 
-    Without it the MLP must learn a global offset of tens of cm at lr 1e-3, which costs epochs.
+    Coarse-to-fine over +-1 m (0.1 m steps, then 0.02 m). Without it the MLP must learn a global
+    offset of tens of cm at lr 1e-3, which costs epochs.
     """
     g = torch.Generator().manual_seed(seed)
-    sel = pool.road.nonzero().squeeze(1)
+    sel = pool.road.nonzero().squeeze(1).cpu()
     if sel.numel() < 100:
         return z0
-    sel = sel[torch.randperm(sel.numel(), generator=g)[:n_max]]
+    sel = sel[torch.randperm(sel.numel(), generator=g)[:n_max]].to(pool.view.device)
     o, d = view_rays(pool.Kinv, pool.T, pool.view[sel], pool.uv[sel])
-    col = pool.rgb[sel].float() / 255.0
-    view = pool.view[sel]
-    best, best_z = math.inf, z0
+    o, d = o.double().cpu(), d.double().cpu()
+    col = pool.rgb[sel].float().cpu() / 255.0
+    view = pool.view[sel].cpu()
     down = d[:, 2] < -1e-6
-    for dz in np.linspace(-span, span, steps):
-        z = z0 + float(dz)
-        lam = (z - o[:, 2]) / torch.where(down, d[:, 2], torch.ones_like(d[:, 2]))
+    dz_safe = torch.where(down, d[:, 2], torch.ones_like(d[:, 2]))
+
+    def score(z: float) -> float:
+        lam = (z - o[:, 2]) / dz_safe
         ok = down & (lam > 0) & (lam < 40)
         if ok.sum() < 100:
-            continue
+            return math.inf
         xy = o[ok, :2] + lam[ok, None] * d[ok, :2]
         cell = torch.floor(xy / (2 * res)).long()
         cell = cell - cell.min(0).values
         key = cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1]
         uniq, inv = torch.unique(key, return_inverse=True)
         n = torch.bincount(inv, minlength=uniq.numel()).float()
-        # cells seen from at least two views carry the multi-view evidence
+        # only cells seen from at least two views carry multi-view evidence
         vmin = torch.full((uniq.numel(),), 1 << 30, dtype=torch.long).scatter_reduce(0, inv, view[ok], "amin")
         vmax = torch.zeros(uniq.numel(), dtype=torch.long).scatter_reduce(0, inv, view[ok], "amax")
         multi = (vmax != vmin) & (n >= 2)
         if multi.sum() < 20:
-            continue
+            return math.inf
         s1 = torch.zeros(uniq.numel(), 3).index_add_(0, inv, col[ok])
         s2 = torch.zeros(uniq.numel(), 3).index_add_(0, inv, col[ok] ** 2)
         var = (s2 / n[:, None] - (s1 / n[:, None]) ** 2).sum(1)
-        score = float((var * n)[multi].sum() / n[multi].sum())
-        if score < best:
-            best, best_z = score, z
+        return float((var * n)[multi].sum() / n[multi].sum())
+
+    best_z = z0
+    for span, steps in ((1.0, 21), (0.1, 11)):
+        cands = [best_z + float(t) for t in np.linspace(-span, span, steps)]
+        scores = [score(z) for z in cands]
+        k = int(np.argmin(scores))
+        if math.isfinite(scores[k]):
+            best_z = cands[k]
     return best_z
 
 
@@ -121,13 +128,14 @@ def evaluate_pool(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, height
         idx = torch.randperm(n, generator=generator)[:max_pixels].to(pool.view.device)
     g = model.grid
     hf = HeightField(g.x0, g.y0, g.res, heights, model.valid_t)
+    bounds = surface_bounds(hf, pool.uv.dtype)
     T = corrected_poses(pool.T, delta)
     se = torch.zeros((), dtype=torch.float64, device=heights.device)
     n_road = n_sem = n_ok = n_hit = 0
     for s in range(0, idx.numel(), batch):
         b = idx[s:s + batch]
         o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
-        cells = find_hits(hf, o, d, cfg.max_dist)
+        cells = find_hits(hf, o, d, cfg.max_dist, bounds=bounds)
         hit = hits_to_rayhit(hf, o, d, cells)
         hv = hit.hit
         n_hit += int(hv.sum())
@@ -223,7 +231,7 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
     cam_z = float(np.median(traj[:, 2]))
     z0 = cam_z - cfg.camera_height
     if cfg.init_height_search:
-        z0 = _plane_search(pool, z0, cfg.resolution, device, seed=cfg.seed)
+        z0 = _plane_search(pool, z0, cfg.resolution, seed=cfg.seed)
 
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
@@ -282,7 +290,6 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
 
     n_epoch = max(1, int(round(len(pool) * min(cfg.pixel_fraction, 1.0))))
     steps_per_epoch = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
-    E = model.edges.shape[0]
     depth_on = use_depth and pool.depth is not None and cfg.w_depth > 0
     bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, disable=not progress, desc="mesh",
                unit="step", dynamic_ncols=True)
@@ -298,20 +305,21 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
             if cache is None or step % cfg.height_refresh_steps == 0:
                 with torch.no_grad():
                     cache = model.dense(model.heights(), fill=float(z0)).reshape(-1).float()
+                    hf_cache = HeightField(gy.x0, gy.y0, gy.res, cache.reshape(gy.ny, gy.nx), model.valid_t)
+                    bounds = surface_bounds(hf_cache, torch.float32)
             b = perm[step * cfg.pixels_per_step:(step + 1) * cfg.pixels_per_step]
             if b.numel() == 0:
                 continue
             T = corrected_poses(pool.T, delta)
             o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
-            hf_cache = HeightField(gy.x0, gy.y0, gy.res, cache.reshape(gy.ny, gy.nx), model.valid_t)
-            cells = find_hits(hf_cache, o, d, cfg.max_dist)
+            cells = find_hits(hf_cache, o, d, cfg.max_dist, bounds=bounds)
             if cells.idx.numel() == 0:
                 bar.update(1)
                 continue
             tri = model.flat_to_compact[cells.vertex_ids(gy.nx)]  # (M, 3) compact ids
-            ek = torch.randint(0, E, (min(cfg.smooth_edges_per_step, E),), generator=gen).to(device)
-            edges = model.edges[ek]
-            need, inv = torch.unique(torch.cat([tri.reshape(-1), edges.reshape(-1)]), return_inverse=True)
+            # The MLP runs only on the hit triangles' vertices; the Laplacian term uses those triangles'
+            # edges (a sample of the mesh edges E, weighted by how often the views see them).
+            need, inv = torch.unique(tri.reshape(-1), return_inverse=True)
             h_need = model.heights(need)
             heights = cache.index_copy(0, flat_ids[need], h_need.float()).reshape(gy.ny, gy.nx)
             hf = HeightField(gy.x0, gy.y0, gy.res, heights, model.valid_t)
@@ -337,8 +345,8 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
                 if m.any():
                     l_depth = (hit.lam[rows][m] - dg[m]).abs().mean()
                     loss = loss + cfg.w_depth * l_depth
-            he = h_need[inv[tri.numel():]].reshape(-1, 2)
-            l_smooth = ((he[:, 0] - he[:, 1]) ** 2).mean()
+            ht = h_need[inv].reshape(-1, 3)
+            l_smooth = ((ht - ht.roll(1, dims=1)) ** 2).mean()
             loss = loss + cfg.w_smooth * l_smooth
             if not torch.isfinite(loss):
                 bad += 1
@@ -371,7 +379,7 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
                 sums["smooth"] += float(l_smooth)
             bar.update(1)
             if step % 4 == 0:
-                bar.set_postfix(epoch=f"{epoch + 1}/{cfg.epochs}", loss=f"{float(loss):.4f}",
+                bar.set_postfix(epoch=f"{epoch + 1}/{cfg.epochs}", loss=f"{float(loss.detach()):.4f}",
                                 psnr=f"{_psnr(sums['se'] / max(1, sums['n'])):.2f}")
         with torch.no_grad():
             heights_now = model.dense(model.heights(), fill=float(z0)).float()

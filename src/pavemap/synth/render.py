@@ -39,8 +39,8 @@ from pavemap.types import Camera
 
 SHADOW_BIT = 1 << 14
 FAR_M = 220.0  # horizontal distance beyond which the ground is not rendered (haze → sky colour)
-MARCH_STEPS = 10
-REFINE_STEPS = 8
+MARCH_STEPS = 7
+REFINE_STEPS = 5
 HORIZON = torch.tensor([0.80, 0.85, 0.9])
 ZENITH = torch.tensor([0.40, 0.58, 0.84])
 
@@ -79,21 +79,24 @@ def _ground_g(tw: dict, o: torch.Tensor, dx, dy, dz, lam):
     return o[2] + lam * dz - bilinear_t(tw["height"], tw["hgrid"], x, y)
 
 
-def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz) -> torch.Tensor:
-    """(N,) camera depth of the first ground hit of each ray, +inf where none within FAR_M."""
+def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz,
+                     ground_ref: tuple[float, float, float], limit: torch.Tensor | None = None) -> torch.Tensor:
+    """(N,) camera depth of the first ground hit of each ray, +inf where none within FAR_M.
+
+    ``limit`` (N,): depth of a nearer object; rays whose slab starts behind it are skipped.
+    """
     dev = dx.device
     p = world.params
     ox, oy, oz = (float(v) for v in o_np)
-    zf = float(world.height_at(np.array([ox]), np.array([oy]))[0])
-    e = 3.0  # plane through the ground within ±3 m of the camera
-    gx = float((world.height_at(np.array([ox + e]), np.array([oy])) - world.height_at(np.array([ox - e]),
-                                                                                       np.array([oy])))[0] / (2 * e))
-    gy = float((world.height_at(np.array([ox]), np.array([oy + e])) - world.height_at(np.array([ox]),
-                                                                                       np.array([oy - e])))[0] / (2 * e))
+    zf, gx, gy = ground_ref
     a = dz - gx * dx - gy * dy  # rate at which the ray descends relative to that plane
     h0 = oz - zf
     lam_out = torch.full_like(dx, float("inf"))
-    idx = torch.nonzero(a < -1e-5).squeeze(1)
+    U, L = 0.9 + 0.02 * p.width, -0.35 - 0.02 * p.width
+    cand = a < -1e-5
+    if limit is not None:
+        cand &= (h0 - U - 6.0) / (-a).clamp(min=1e-5) < limit
+    idx = torch.nonzero(cand).squeeze(1)
     if idx.numel() == 0:
         return lam_out
     a_ = a[idx]
@@ -101,7 +104,6 @@ def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz) -> to
     horiz = torch.sqrt(dx_ * dx_ + dy_ * dy_).clamp(min=1e-9)
     # relief relative to the plane: curbs + sidewalk + verge rise above, potholes and crown below;
     # the vertical curve and banking changes add a quadratic allowance in the horizontal distance.
-    U, L = 0.9 + 0.02 * p.width, -0.35 - 0.02 * p.width
     kv = p.vert_amp * (2 * math.pi / p.vert_wavelength) ** 2 + 2e-5
     lam_bot0 = (h0 - L) / (-a_)
     allow = (0.5 * kv * (lam_bot0 * horiz) ** 2).clamp(max=6.0)
@@ -109,32 +111,24 @@ def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz) -> to
     lam_bot = torch.minimum((h0 - L + allow) / (-a_), FAR_M / horiz)
     ok = lam_bot > lam_top
     o = torch.tensor([ox, oy, oz], dtype=dx.dtype, device=dev)
-    g_prev = _ground_g(tw, o, dx_, dy_, dz_, lam_top)
-    lam_prev = lam_top
+    step = (lam_bot - lam_top) / MARCH_STEPS
+    g_top = _ground_g(tw, o, dx_, dy_, dz_, lam_top)
     # a ray already below the surface at the top of the slab (relief bound exceeded): take lam_top
-    found = g_prev <= 0
-    lo = lam_top.clone()
-    hi = lam_top.clone()
-    glo = g_prev.clone()
-    ghi = g_prev.clone()
-    for i in range(1, MARCH_STEPS + 1):
-        lam = lam_top + (lam_bot - lam_top) * (i / MARCH_STEPS)
-        g = _ground_g(tw, o, dx_, dy_, dz_, lam)
-        new = (~found) & (g <= 0)
-        lo = torch.where(new, lam_prev, lo)
-        glo = torch.where(new, g_prev, glo)
-        hi = torch.where(new, lam, hi)
-        ghi = torch.where(new, g, ghi)
-        found |= new
-        lam_prev, g_prev = lam, g
-    found &= ok
-    sel = torch.nonzero(found & (glo > 0)).squeeze(1)
-    direct = torch.nonzero(found & (glo <= 0)).squeeze(1)
+    first = torch.where(g_top <= 0, torch.zeros_like(lam_top), torch.full_like(lam_top, MARCH_STEPS + 1.0))
+    for i in range(MARCH_STEPS, 0, -1):  # backwards: the last write is the first crossing
+        g = _ground_g(tw, o, dx_, dy_, dz_, lam_top + step * i)
+        first = torch.where((g <= 0) & (first > 0), torch.full_like(first, float(i)), first)
+    found = ok & (first <= MARCH_STEPS)
     res = torch.full_like(lam_top, float("inf"))
+    direct = torch.nonzero(found & (first == 0)).squeeze(1)
     res[direct] = lam_top[direct]
+    sel = torch.nonzero(found & (first > 0)).squeeze(1)
     if sel.numel():
-        lo, hi, glo, ghi = lo[sel], hi[sel], glo[sel], ghi[sel]
         sdx, sdy, sdz = dx_[sel], dy_[sel], dz_[sel]
+        hi = lam_top[sel] + step[sel] * first[sel]
+        lo = hi - step[sel]
+        glo = _ground_g(tw, o, sdx, sdy, sdz, lo)
+        ghi = _ground_g(tw, o, sdx, sdy, sdz, hi)
         side = torch.zeros_like(lo)
         for _ in range(REFINE_STEPS):  # Illinois regula falsi: bracket kept, converges superlinearly
             lam = (lo * ghi - hi * glo) / (ghi - glo)
@@ -155,27 +149,43 @@ def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz) -> to
 # ---------------------------------------------------------------------------- objects
 
 
+_BOX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6],
+                       [3, 7]])
+NEAR = 0.05
+
+
 def _screen_rects(corners: np.ndarray, R: np.ndarray, o: np.ndarray, K: np.ndarray, W: int, H: int,
-                  max_dist: float = 160.0) -> list[tuple[int, int, int, int, int]]:
-    """Pixel rectangles (k, u0, u1, v0, v1) of objects' corner sets (Nk, C, 3) that may be visible."""
+                  max_dist: float = 160.0, edges: np.ndarray | None = None) -> list[tuple[int, int, int, int, int]]:
+    """Pixel rectangles (k, u0, u1, v0, v1) of objects' corner sets (Nk, C, 3) that may be visible.
+
+    Objects straddling the camera plane are clipped against the near plane (edge intersections
+    added), so a long wall beside the camera does not cost the whole image.
+    """
     if len(corners) == 0:
         return []
     Xc = (corners - o[None, None]) @ R  # (Nk, C, 3) camera coordinates (R is camera-to-world)
     z = Xc[..., 2]
-    out = []
     zmin = z.min(1)
     zmax = z.max(1)
     dist = np.linalg.norm(corners.mean(1) - o[None], axis=1)
-    for k in np.nonzero((zmax > 0.05) & (dist < max_dist))[0]:
-        if zmin[k] <= 0.05:
-            # straddles the camera plane: the projection is unbounded, take the whole image
-            out.append((int(k), 0, W, 0, H))
-            continue
-        uv = Xc[k, :, :2] / z[k, :, None]
-        u = K[0, 0] * uv[:, 0] + K[0, 1] * uv[:, 1] + K[0, 2]
-        v = K[1, 1] * uv[:, 1] + K[1, 2]
-        u0, u1 = max(0, int(math.floor(u.min()))), min(W, int(math.ceil(u.max())) + 1)
-        v0, v1 = max(0, int(math.floor(v.min()))), min(H, int(math.ceil(v.max())) + 1)
+    keep = np.nonzero((zmax > NEAR) & (dist < max_dist))[0]
+    out = []
+    for k in keep:
+        P = Xc[k]
+        if zmin[k] <= NEAR:
+            if edges is None:
+                out.append((int(k), 0, W, 0, H))
+                continue
+            a, b = P[edges[:, 0]], P[edges[:, 1]]
+            za, zb = a[:, 2], b[:, 2]
+            cross = (za - NEAR) * (zb - NEAR) < 0
+            tt = (NEAR - za[cross]) / (zb[cross] - za[cross])
+            P = np.concatenate([P[P[:, 2] > NEAR], a[cross] + tt[:, None] * (b[cross] - a[cross])])
+            P[:, 2] = np.maximum(P[:, 2], NEAR)
+        u = K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2]
+        v = K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]
+        u0, u1 = max(0, int(math.floor(max(u.min(), -1.0)))), min(W, int(math.ceil(min(u.max(), W + 1.0))) + 1)
+        v0, v1 = max(0, int(math.floor(max(v.min(), -1.0)))), min(H, int(math.ceil(min(v.max(), H + 1.0))) + 1)
         if u1 > u0 and v1 > v0:
             out.append((int(k), u0, u1, v0, v1))
     return out
@@ -209,46 +219,69 @@ def _winner(n: int, pix: torch.Tensor, lam: torch.Tensor, hit: torch.Tensor):
     return depth, win
 
 
-def intersect_boxes(tw: dict, rects, o: torch.Tensor, d: torch.Tensor, W: int):
-    """Nearest oriented-box hit per pixel: depth (N,), winning box (N,) or -1, local hit point, local axis."""
-    n = d.shape[0]
-    pix, bid = _pairs(rects, W, d.device)
-    b = tw["boxes"]
+def intersect_boxes(tw: dict, rects, o: torch.Tensor, dx, dy, dz, W: int):
+    """Nearest oriented-box hit per pixel (slab test in each box frame, only on its screen rectangle).
+
+    Returns depth (N,), the winning pair (N,) or -1, and the pair data to shade winners.
+    """
+    n = dx.shape[0]
+    pix, bid = _pairs(rects, W, dx.device)
     if pix.numel() == 0:
-        depth, win = _winner(n, pix, torch.zeros(0, device=d.device), torch.zeros(0, dtype=torch.bool))
+        depth, win = _winner(n, pix, torch.zeros(0, device=dx.device), torch.zeros(0, dtype=torch.bool))
         return depth, win, None
-    bb = b[bid]
-    c, s = torch.cos(bb[:, 6]), torch.sin(bb[:, 6])
-    ox, oy, oz = o[0] - bb[:, 0], o[1] - bb[:, 1], o[2] - bb[:, 2]
-    dd = d[pix]
-    lo = torch.stack([c * ox + s * oy, -s * ox + c * oy, oz], 1)
-    ld = torch.stack([c * dd[:, 0] + s * dd[:, 1], -s * dd[:, 0] + c * dd[:, 1], dd[:, 2]], 1)
-    ld = torch.where(ld.abs() < 1e-9, torch.full_like(ld, 1e-9), ld)
-    hsz = bb[:, 3:6]
-    t1 = (-hsz - lo) / ld
-    t2 = (hsz - lo) / ld
-    tn, axis = torch.minimum(t1, t2).max(1)
-    tf = torch.maximum(t1, t2).min(1).values
-    hit = (tf >= tn) & (tn > 0.05)
+    b = tw["boxes"]
+    cb, sb = torch.cos(b[:, 6]), torch.sin(b[:, 6])
+    rx, ry, rz = o[0] - b[:, 0], o[1] - b[:, 1], o[2] - b[:, 2]
+    # camera centre in each box frame: per box, not per pair
+    lo_all = torch.stack([cb * rx + sb * ry, -sb * rx + cb * ry, rz], 1)
+    bid32 = bid.int()
+    c = cb.index_select(0, bid32)
+    s = sb.index_select(0, bid32)
+    pix32 = pix.int()
+    ddx, ddy, ddz = dx.index_select(0, pix32), dy.index_select(0, pix32), dz.index_select(0, pix32)
+    ld = (c * ddx + s * ddy, -s * ddx + c * ddy, ddz)
+    lo = lo_all.index_select(0, bid32)
+    hs = b[:, 3:6].index_select(0, bid32)
+    tn = None
+    tf = None
+    axis = None
+    for k in range(3):
+        dk = torch.where(ld[k].abs() < 1e-9, torch.full_like(ld[k], 1e-9), ld[k])
+        inv = 1.0 / dk
+        ta = (-hs[:, k] - lo[:, k]) * inv
+        tb = (hs[:, k] - lo[:, k]) * inv
+        tmin = torch.minimum(ta, tb)
+        tmax = torch.maximum(ta, tb)
+        if tn is None:
+            tn, tf, axis = tmin, tmax, torch.zeros_like(pix)
+        else:
+            axis = torch.where(tmin > tn, torch.full_like(axis, k), axis)
+            tn = torch.maximum(tn, tmin)
+            tf = torch.minimum(tf, tmax)
+    hit = (tf >= tn) & (tn > NEAR)
     depth, win = _winner(n, pix, tn, hit)
     return depth, win, (pix, bid, lo, ld, tn, axis)
 
 
-def intersect_spheres(tw: dict, rects, o: torch.Tensor, d: torch.Tensor, W: int):
-    n = d.shape[0]
-    pix, sid = _pairs(rects, W, d.device)
+def intersect_spheres(tw: dict, rects, o: torch.Tensor, dx, dy, dz, W: int):
+    n = dx.shape[0]
+    pix, sid = _pairs(rects, W, dx.device)
     if pix.numel() == 0:
-        depth, win = _winner(n, pix, torch.zeros(0, device=d.device), torch.zeros(0, dtype=torch.bool))
+        depth, win = _winner(n, pix, torch.zeros(0, device=dx.device), torch.zeros(0, dtype=torch.bool))
         return depth, win, None
-    sp = tw["spheres"][sid]
-    oc = o[None] - sp[:, :3]
-    dd = d[pix]
-    A = (dd * dd).sum(1)
-    B = (oc * dd).sum(1)
-    C = (oc * oc).sum(1) - sp[:, 3] ** 2
+    sp = tw["spheres"]
+    oc_all = o[None] - sp[:, :3]
+    C_all = (oc_all * oc_all).sum(1) - sp[:, 3] ** 2
+    sid32 = sid.int()
+    pix32 = pix.int()
+    ddx, ddy, ddz = dx.index_select(0, pix32), dy.index_select(0, pix32), dz.index_select(0, pix32)
+    oc = oc_all.index_select(0, sid32)
+    A = ddx * ddx + ddy * ddy + ddz * ddz
+    B = oc[:, 0] * ddx + oc[:, 1] * ddy + oc[:, 2] * ddz
+    C = C_all.index_select(0, sid32)
     disc = B * B - A * C
     lam = (-B - torch.sqrt(disc.clamp(min=0))) / A
-    hit = (disc > 0) & (lam > 0.05)
+    hit = (disc > 0) & (lam > NEAR)
     depth, win = _winner(n, pix, lam, hit)
     return depth, win, (pix, sid, lam)
 
@@ -318,9 +351,9 @@ def _ground_shade(world: World, tw: dict, px, py, lam_fp):
         if pi.numel():
             item = cand[pi, ki]
             factor, member, darken_base = _item_effects(it, item, px[pi], py[pi], fp[pi], tiles)
-            f = torch.ones_like(s).index_reduce_(0, pi, factor, "prod")
+            f = torch.ones_like(s).scatter_reduce_(0, pi, factor, reduce="prod")
             col = col * f[:, None]
-            base = torch.ones_like(s).index_reduce_(0, pi, darken_base, "prod")
+            base = torch.ones_like(s).scatter_reduce_(0, pi, darken_base, reduce="prod")
             col = col * base[:, None] * torch.tensor([1.0, 0.98, 0.95], device=px.device).pow(
                 (1 - base)[:, None] * 4)
             codes = torch.where(member, it["prm"][item, 1].long(), torch.zeros_like(item))
@@ -429,6 +462,9 @@ def _object_shade(tw: dict, kind: torch.Tensor, colour: torch.Tensor, local: tor
 # ---------------------------------------------------------------------------- view
 
 
+CHUNK_PIXELS = 262144  # rays per chunk: bounds memory on large images
+
+
 def render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure: float = 1.0,
                 white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0), noise_seed: int = 0,
                 device: str | torch.device = "cpu") -> RenderOutput:
@@ -436,35 +472,81 @@ def render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure:
     dev = resolve_device(device)
     tw = world.tensors(dev)
     H, W = camera.height, camera.width
-    n = H * W
     K = np.asarray(camera.K, np.float64)
     T = np.asarray(T_world_cam, np.float64)
     R, o_np = T[:3, :3], T[:3, 3]
+    if "box_corners" not in tw:
+        tw["box_corners"] = box_corners(world.boxes) if len(world.boxes) else np.zeros((0, 8, 3))
+        sp = world.spheres.astype(np.float64)
+        tw["sphere_cubes"] = sp[:, None, :3] + sp[:, None, 3:4] * np.array(
+            [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)[None]
+    brects = _screen_rects(tw["box_corners"], R, o_np, K, W, H, edges=_BOX_EDGES)
+    srects = _screen_rects(tw["sphere_cubes"], R, o_np, K, W, H, edges=_BOX_EDGES)
+    ground_ref = _ground_reference(world, o_np)
+    rgb = np.empty((H * W, 3), np.uint8)
+    label = np.empty(H * W, np.uint8)
+    depth = np.empty(H * W, np.float32)
+    code = np.empty(H * W, np.int64)
+    obj = np.empty(H * W, np.int64)
+    rows = max(1, CHUNK_PIXELS // W)
+    for r0 in range(0, H, rows):
+        r1 = min(H, r0 + rows)
+        out = _render_rows(world, tw, K, R, o_np, W, r0, r1, _clip_rects(brects, r0, r1),
+                           _clip_rects(srects, r0, r1), ground_ref, exposure, white_balance, noise_seed)
+        sl = slice(r0 * W, r1 * W)
+        rgb[sl], label[sl], depth[sl], code[sl], obj[sl] = (x.cpu().numpy() for x in out)
+    low = code & (SHADOW_BIT - 1)
+    instance = np.where(low < DECOY_ID_OFFSET, low, 0).astype(np.int32)
+    return RenderOutput(
+        rgb=rgb.reshape(H, W, 3), label=label.reshape(H, W), depth=depth.reshape(H, W),
+        instance=instance.reshape(H, W), code=code.astype(np.uint16).reshape(H, W),
+        obj=obj.astype(np.int32).reshape(H, W),
+    )
+
+
+def _clip_rects(rects, r0: int, r1: int):
+    """Rectangles restricted to rows [r0, r1), rows made relative to r0."""
+    out = []
+    for k, u0, u1, v0, v1 in rects:
+        a, b = max(v0, r0), min(v1, r1)
+        if b > a:
+            out.append((k, u0, u1, a - r0, b - r0))
+    return out
+
+
+def _ground_reference(world: World, o_np: np.ndarray) -> tuple[float, float, float]:
+    """Ground height under the camera and the mean slope (gx, gy) within ±3 m."""
+    ox, oy = float(o_np[0]), float(o_np[1])
+    e = 3.0
+    xs = np.array([ox, ox + e, ox - e, ox, ox])
+    ys = np.array([oy, oy, oy, oy + e, oy - e])
+    h = world.height_at(xs, ys)
+    return float(h[0]), float((h[1] - h[2]) / (2 * e)), float((h[3] - h[4]) / (2 * e))
+
+
+def _render_rows(world: World, tw: dict, K: np.ndarray, R: np.ndarray, o_np: np.ndarray, W: int, r0: int,
+                 r1: int, brects, srects, ground_ref, exposure: float, white_balance, noise_seed: int):
+    """Render image rows [r0, r1): rgb (n, 3) uint8, label (n,) uint8, depth (n,), code (n,), obj (n,)."""
+    dev = tw["device"]
+    n = (r1 - r0) * W
     M = torch.as_tensor(R @ np.linalg.inv(K), dtype=torch.float32, device=dev)
-    vv, uu = torch.meshgrid(torch.arange(H, device=dev, dtype=torch.float32),
+    vv, uu = torch.meshgrid(torch.arange(r0, r1, device=dev, dtype=torch.float32),
                             torch.arange(W, device=dev, dtype=torch.float32), indexing="ij")
     uu = uu.reshape(-1)
     vv = vv.reshape(-1)
-    d = torch.stack([M[i, 0] * uu + M[i, 1] * vv + M[i, 2] for i in range(3)], 1)  # (N, 3), camera z = 1
+    dx, dy, dz = (M[i, 0] * uu + M[i, 1] * vv + M[i, 2] for i in range(3))  # camera z = 1: λ is depth
     o = torch.as_tensor(o_np, dtype=torch.float32, device=dev)
+    lam_b, win_b, binfo = intersect_boxes(tw, brects, o, dx, dy, dz, W)
+    lam_s, win_s, sinfo = intersect_spheres(tw, srects, o, dx, dy, dz, W)
+    lam_o = torch.minimum(lam_b, lam_s)
+    lam_g = intersect_ground(world, tw, o_np, dx, dy, dz, ground_ref, limit=lam_o)
 
-    lam_g = intersect_ground(world, tw, o_np, d[:, 0], d[:, 1], d[:, 2])
-    brects = _screen_rects(box_corners(world.boxes), R, o_np, K, W, H) if len(world.boxes) else []
-    lam_b, win_b, binfo = intersect_boxes(tw, brects, o, d, W)
-    if len(world.spheres):
-        sp = world.spheres.astype(np.float64)
-        cube = sp[:, None, :3] + sp[:, None, 3:4] * np.array(
-            [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)[None]
-        srects = _screen_rects(cube, R, o_np, K, W, H)
-    else:
-        srects = []
-    lam_s, win_s, sinfo = intersect_spheres(tw, srects, o, d, W)
-
-    depth = torch.minimum(torch.minimum(lam_g, lam_b), lam_s)
+    depth = torch.minimum(lam_g, lam_o)
     hit_any = torch.isfinite(depth)
     is_g = hit_any & (lam_g <= depth)
     is_b = hit_any & ~is_g & (lam_b <= depth)
     is_s = hit_any & ~is_g & ~is_b
+    d = torch.stack([dx, dy, dz], 1)
 
     col = torch.zeros((n, 3), device=dev)
     nrm = torch.zeros((n, 3), device=dev)
@@ -491,8 +573,9 @@ def render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure:
         w = win_b[bi]
         box = tw["boxes"][bid[w]]
         ax = axis[w]
-        local = lo[w] + tn[w, None] * ld[w]
-        sgn = -torch.sign(ld[w].gather(1, ax[:, None]).squeeze(1))
+        ldw = torch.stack([ld[0][w], ld[1][w], ld[2][w]], 1)
+        local = lo[w] + tn[w, None] * ldw
+        sgn = -torch.sign(ldw.gather(1, ax[:, None]).squeeze(1))
         ln = torch.zeros((w.numel(), 3), device=dev)
         ln.scatter_(1, ax[:, None], sgn[:, None])
         cb, sb = torch.cos(box[:, 6]), torch.sin(box[:, 6])
@@ -510,7 +593,8 @@ def render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure:
         hitp = o[None] + lam_s[si, None] * d[si]
         nr = (hitp - spr[:, :3]) / spr[:, 3:4]
         nrm[si] = nr
-        leaf = value_noise(tw["tiles"][2], hitp[:, 0] + hitp[:, 2] * 0.7, hitp[:, 1] - hitp[:, 2] * 0.5, 0.25)
+        leaf = 0.5 * (value_noise(tw["tiles"][2], hitp[:, 0], hitp[:, 2], 0.22)
+                      + value_noise(tw["tiles"][3], hitp[:, 1], hitp[:, 2] + 7.0, 0.22))
         col[si] = spr[:, 4:7] * (0.6 + 0.8 * leaf)[:, None]
         label[si] = spr[:, 7].long()
         obj[si] = tw["sphere_kind"][sid[w]] + 1
@@ -529,21 +613,12 @@ def render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure:
     col = torch.where(hit_any[:, None], col * (1 - haze) + hz_c[None] * haze, sky)
     col = col * exposure * torch.tensor(white_balance, device=dev)[None]
     # mild sensor noise, deterministic per view
-    pixid = torch.arange(n, device=dev, dtype=torch.float32)
+    pixid = torch.arange(r0 * W, r1 * W, device=dev, dtype=torch.float32)
     col = col + (_hash01(pixid, pixid * 0.37, float(noise_seed % 1000)) - 0.5)[:, None] * (3.0 / 255)
     rgb = (col.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
 
-    instance = torch.where((code & (SHADOW_BIT - 1)) < DECOY_ID_OFFSET, code & (SHADOW_BIT - 1),
-                           torch.zeros_like(code))
     depth_out = torch.where(hit_any, depth, torch.zeros_like(depth))
-    return RenderOutput(
-        rgb=rgb.reshape(H, W, 3).cpu().numpy(),
-        label=label.to(torch.uint8).reshape(H, W).cpu().numpy(),
-        depth=depth_out.reshape(H, W).float().cpu().numpy(),
-        instance=instance.to(torch.int32).reshape(H, W).cpu().numpy(),
-        code=code.to(torch.int32).reshape(H, W).cpu().numpy().astype(np.uint16),
-        obj=obj.to(torch.int32).reshape(H, W).cpu().numpy(),
-    )
+    return rgb, label.to(torch.uint8), depth_out, code, obj
 
 
 __all__ = ["RenderOutput", "render_view", "resolve_device", "SHADOW_BIT", "BUILDING", "ROAD", "TERRAIN"]

@@ -366,8 +366,9 @@ def bilinear_np(a: np.ndarray, g: Grid, x: np.ndarray, y: np.ndarray) -> np.ndar
     j = np.floor(fy).astype(np.int64)
     ax = fx - i
     ay = fy - j
-    a = a.astype(np.float64, copy=False)
-    return ((1 - ay) * ((1 - ax) * a[j, i] + ax * a[j, i + 1]) + ay * ((1 - ax) * a[j + 1, i] + ax * a[j + 1, i + 1]))
+    v00, v01 = a[j, i].astype(np.float64), a[j, i + 1].astype(np.float64)
+    v10, v11 = a[j + 1, i].astype(np.float64), a[j + 1, i + 1].astype(np.float64)
+    return (1 - ay) * ((1 - ax) * v00 + ax * v01) + ay * ((1 - ax) * v10 + ax * v11)
 
 
 def bilinear_t(a: torch.Tensor, g: tuple[float, float, float, int, int], x: torch.Tensor, y: torch.Tensor,

@@ -1,0 +1,256 @@
+"""KITTI odometry → sequence folder.
+
+Layout read (the official one; ``poses`` may also sit inside the sequence folder)::
+
+    ROOT/sequences/00/image_2/000000.png    colour left   (--camera 2)
+    ROOT/sequences/00/image_0/000000.png    grey left     (--camera 0, stored as 3 channels)
+    ROOT/sequences/00/calib.txt             P0..P3 (3x4), Tr (velodyne -> cam0)
+    ROOT/sequences/00/times.txt             optional, seconds
+    ROOT/sequences/00/velodyne/000000.bin   optional, float32 x y z reflectance
+    ROOT/poses/00.txt                       or ROOT/sequences/00/poses.txt
+
+``calib.txt`` lines are either labelled (``P0: 12 numbers``, ``Tr: 12 numbers``) or bare
+3×4 rows in the order P0, P1[, P2, P3][, Tr] (2, 4 or 5 rows). ``poses.txt`` has one row
+of 12 numbers per frame: the 3×4 camera-to-world pose of the left grey camera (cam0) in
+KITTI's frame, which is cam0 at frame 0 (x right, y down, z forward).
+
+Conversions:
+
+- world: ``X_ours = A X_kitti`` with ``A = [[0,0,1],[-1,0,0],[0,-1,0]]`` (x forward, y left,
+  z up; a proper rotation, det +1). The origin stays at cam0 of frame 0, so the road lies
+  near z = -1.65 m (the camera height).
+- camera i of the rectified rig: ``P_i = K [I | t_i]`` with ``t_i = K⁻¹ P_i[:, 3]``, so
+  ``X_cam_i = X_cam0 + t_i`` and ``T_world_cam_i = A4 · T_kitti_cam0 · [I | -t_i]``.
+  Camera axes stay OpenCV (KITTI's already are).
+- LiDAR: ``X_cam0 = Tr X_velo``; points are projected into camera i and the nearest depth
+  per pixel is written as uint16 millimetres (``depth/<cam>/<frame>.png``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pavemap.errors import PavemapError
+from pavemap.io.atomic import atomic_path
+from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, list_images
+from pavemap.io.sequence import SequenceError, check_intrinsics, save_depth, write_sequence
+from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
+
+#: KITTI camera frame (x right, y down, z forward) → pavemap world (x forward, y left, z up).
+A_KITTI_TO_WORLD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+@dataclass
+class KittiCalib:
+    P: dict[int, np.ndarray]  # camera index -> (3, 4) float64 projection of rectified camera
+    Tr: np.ndarray | None  # (4, 4) float64 velodyne -> cam0, None when absent
+
+    def K(self, cam: int) -> np.ndarray:
+        return self.P[cam][:, :3].copy()
+
+    def t_cam0_to_cam(self, cam: int) -> np.ndarray:
+        """(3,) t_i with X_cam_i = X_cam0 + t_i."""
+        return np.linalg.solve(self.P[cam][:, :3], self.P[cam][:, 3])
+
+
+def _numbers(text: str, file: Path, line: int) -> np.ndarray:
+    try:
+        return np.array([float(x) for x in text.split()], dtype=np.float64)
+    except ValueError:
+        raise SequenceError(file, f"line {line}: expected numbers, got {text.strip()[:60]!r}") from None
+
+
+def read_calib(path: str | os.PathLike) -> KittiCalib:
+    """Parse an odometry ``calib.txt``, labelled or bare (see module docstring)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError(path, "calib.txt not found (KITTI odometry: sequences/NN/calib.txt)")
+    labelled: dict[str, np.ndarray] = {}
+    bare: list[np.ndarray] = []
+    for ln, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not raw.strip():
+            continue
+        m = re.match(r"^\s*([A-Za-z_][\w]*)\s*:(.*)$", raw)
+        if m:
+            labelled[m.group(1)] = _numbers(m.group(2), path, ln)
+        else:
+            bare.append(_numbers(raw, path, ln))
+    P: dict[int, np.ndarray] = {}
+    Tr = None
+    if labelled:
+        for k, v in labelled.items():
+            if re.fullmatch(r"P[0-3]", k):
+                P[int(k[1])] = v
+            elif k in ("Tr", "Tr_velo_cam", "Tr_velo_to_cam"):
+                Tr = v
+    else:
+        if len(bare) not in (2, 3, 4, 5):
+            raise SequenceError(path, f"expected 2, 4 or 5 bare rows (P0, P1[, P2, P3][, Tr]), found {len(bare)}")
+        n_p = 4 if len(bare) >= 4 else 2
+        P = dict(enumerate(bare[:n_p]))
+        if len(bare) in (3, 5):
+            Tr = bare[-1]
+    for k, v in P.items():
+        if v.size != 12:
+            raise SequenceError(path, f"P{k} has {v.size} numbers, expected 12 (a 3x4 matrix)")
+        P[k] = v.reshape(3, 4)
+        why = check_intrinsics(P[k][:, :3])
+        if why:
+            raise SequenceError(path, f"P{k}: left 3x3 is not a camera matrix ({why})")
+    if Tr is not None:
+        if Tr.size != 12:
+            raise SequenceError(path, f"Tr has {Tr.size} numbers, expected 12 (a 3x4 matrix)")
+        Tr = np.vstack([Tr.reshape(3, 4), [0, 0, 0, 1]])
+    if not P:
+        raise SequenceError(path, "no projection matrices P0..P3 found")
+    return KittiCalib(P, Tr)
+
+
+def read_poses(path: str | os.PathLike) -> np.ndarray:
+    """KITTI ``poses.txt`` → (N, 4, 4) float64 cam0-to-world in KITTI's frame."""
+    path = Path(path)
+    rows = []
+    for ln, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not raw.strip():
+            continue
+        v = _numbers(raw, path, ln)
+        if v.size != 12:
+            raise SequenceError(path, f"line {ln}: {v.size} numbers, expected 12 (a 3x4 pose)")
+        rows.append(v.reshape(3, 4))
+    if not rows:
+        raise SequenceError(path, "no poses")
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :] = np.stack(rows)
+    return T
+
+
+def kitti_to_world(T_kitti_cam0: np.ndarray, t_cam: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) KITTI cam0 poses and the camera's offset t_i → (N, 4, 4) T_world_cam in pavemap's z-up world."""
+    A4 = np.eye(4)
+    A4[:3, :3] = A_KITTI_TO_WORLD
+    T_cam0_cam = np.eye(4)
+    T_cam0_cam[:3, 3] = -t_cam
+    T = A4 @ T_kitti_cam0 @ T_cam0_cam
+    U, _, Vt = np.linalg.svd(T[:, :3, :3])  # rows of poses.txt carry ~1e-6 rounding
+    T[:, :3, :3] = U @ Vt
+    return T
+
+
+def read_velodyne(path: str | os.PathLike) -> np.ndarray:
+    """(N, 3) float32 points of a KITTI ``.bin`` (float32 x, y, z, reflectance)."""
+    path = Path(path)
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % 4:
+        raise SequenceError(path, f"size {raw.size * 4} bytes is not a multiple of 16 (x, y, z, r float32)")
+    return raw.reshape(-1, 4)[:, :3]
+
+
+def lidar_depth(points_velo: np.ndarray, Tr: np.ndarray, t_cam: np.ndarray, K: np.ndarray,
+                width: int, height: int) -> np.ndarray:
+    """Sparse depth (H, W) float32 metres (0 = none): nearest projected LiDAR point per pixel.
+
+    ``points_velo`` (N, 3); ``Tr`` (4, 4) velodyne → cam0; camera i sits at X_cam0 + t_cam.
+    """
+    X = points_velo.astype(np.float64) @ Tr[:3, :3].T + Tr[:3, 3] + t_cam  # (N, 3) in camera i
+    X = X[X[:, 2] > 0.1]
+    uvw = X @ K.T
+    u = np.floor(uvw[:, 0] / uvw[:, 2] + 0.5).astype(np.int64)  # pixel centres at integers
+    v = np.floor(uvw[:, 1] / uvw[:, 2] + 0.5).astype(np.int64)
+    ok = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    flat = np.full(width * height, np.inf)
+    np.minimum.at(flat, v[ok] * width + u[ok], X[ok, 2])
+    flat[~np.isfinite(flat)] = 0.0
+    return flat.reshape(height, width).astype(np.float32)
+
+
+def _find_poses(root: Path, seq_dir: Path, sequence: str) -> Path:
+    for p in (root / "poses" / f"{sequence}.txt", seq_dir / "poses.txt", root / "poses.txt"):
+        if p.is_file():
+            return p
+    raise SequenceError(
+        root / "poses" / f"{sequence}.txt",
+        f"poses not found (also looked for {seq_dir / 'poses.txt'}); KITTI publishes poses for sequences 00-10",
+    )
+
+
+def import_kitti(
+    root: str | os.PathLike,
+    sequence: str,
+    out: str | os.PathLike,
+    camera: int = 2,
+    start: int = 0,
+    stop: int | None = None,
+    stride: int = 1,
+    lidar: bool = True,
+    classes: list[SemanticClass] | None = None,
+) -> Sequence:
+    """KITTI odometry sequence → sequence folder at ``out`` (frames ``start:stop:stride``)."""
+    from tqdm import tqdm
+
+    root, out = Path(root), Path(out)
+    if camera not in (0, 1, 2, 3):
+        raise PavemapError(f"--camera must be 0, 1 (grey) or 2, 3 (colour), got {camera}")
+    if stride < 1:
+        raise PavemapError(f"--stride must be >= 1, got {stride}")
+    seq_root = root / "sequences"
+    seq_dir = seq_root / sequence
+    if not seq_dir.is_dir():
+        have = sorted(p.name for p in seq_root.iterdir() if p.is_dir()) if seq_root.is_dir() else []
+        raise SequenceError(seq_dir, f"sequence {sequence!r} not found; available: {have or 'none (wrong ROOT?)'}")
+    calib = read_calib(seq_dir / "calib.txt")
+    if camera not in calib.P:
+        raise SequenceError(seq_dir / "calib.txt", f"no P{camera} for --camera {camera}; has {sorted(calib.P)}")
+    img_dir = seq_dir / f"image_{camera}"
+    if not img_dir.is_dir():
+        raise SequenceError(img_dir, f"image folder for --camera {camera} not found")
+    images = list_images(img_dir)
+    T_all = read_poses(poses_file := _find_poses(root, seq_dir, sequence))
+    if len(images) != len(T_all):
+        raise SequenceError(poses_file, f"{len(T_all)} poses but {len(images)} images in {img_dir}")
+    times_file = seq_dir / "times.txt"
+    times = (
+        np.loadtxt(times_file, dtype=np.float64, ndmin=1) if times_file.is_file() else np.arange(len(images)) * 0.1
+    )
+    if len(times) != len(images):
+        raise SequenceError(times_file, f"{len(times)} timestamps but {len(images)} images")
+
+    idx = np.arange(len(images))[start:stop:stride]
+    if idx.size == 0:
+        raise PavemapError(f"no frames in --start {start} --stop {stop} (sequence has {len(images)})")
+    t_cam = calib.t_cam0_to_cam(camera)
+    K = calib.K(camera)
+    w, h = image_size(images[0])
+    name = f"cam{camera}"
+    cam = Camera(name, w, h, K)
+    T_world = kitti_to_world(T_all[idx], t_cam)
+    velo_dir = seq_dir / "velodyne"
+    use_lidar = lidar and velo_dir.is_dir()
+    if use_lidar and calib.Tr is None:
+        raise SequenceError(seq_dir / "calib.txt", "velodyne/ present but calib has no Tr (velodyne -> cam0)")
+    grey = camera in (0, 1)
+
+    frames = []
+    for k, i in enumerate(tqdm(idx, desc=f"kitti {sequence}", unit="frame", disable=None)):
+        src = images[i]
+        size = image_size(src)
+        if size != (w, h):
+            raise SequenceError(src, f"image is {size[0]}x{size[1]}, the sequence's first image is {w}x{h}")
+        rel = f"images/{name}/{i:06d}.png"
+        copy_image(src, out / rel, to_rgb=grey)  # grey becomes 3 channels
+        depth_rel = None
+        if use_lidar:
+            bin_file = velo_dir / f"{src.stem}.bin"
+            if bin_file.is_file():
+                d = lidar_depth(read_velodyne(bin_file), calib.Tr, t_cam, K, w, h)
+                depth_rel = f"depth/{name}/{i:06d}.png"
+                with atomic_path(out / depth_rel) as tmp:
+                    save_depth(tmp, d)
+        frames.append(Frame(int(i), float(times[i]), {name: View(name, rel, T_world[k], None, depth_rel)}))
+    seq = Sequence(f"kitti-{sequence}", list(classes or DEFAULT_CLASSES), {name: cam}, frames)
+    write_sequence(seq, out)
+    return seq
