@@ -298,3 +298,43 @@ def test_sweep_from_records_and_semantic_colours():
     assert img.dtype == np.uint8 and img.shape == (1, 4, 3)
     assert img[0, 0].tolist() == [128, 64, 128] and img[0, 1].tolist() == [128, 64, 128]
     assert img[0, 3].tolist() == [0, 0, 0] and img[0, 2].tolist() == [0, 0, 142]
+
+
+def test_write_outputs_with_sequence_and_output_settings(tmp_path):
+    """The pipeline passes its Sequence and output settings: overlays and the sweep are made from them."""
+    from PIL import Image
+
+    from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
+
+    root = tmp_path / "seq"
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for f in range(2):
+        Image.fromarray(np.full((60, 100, 3), 40 * (f + 1), np.uint8)).save(root / "images" / f"{f:06d}.png")
+        T = np.eye(4)
+        T[0, 3] = 3.0 * f
+        frames.append(Frame(f, 0.1 * f, {"CAM": View("CAM", f"images/{f:06d}.png", T)}))
+    seq = Sequence("scene-x", [SemanticClass(0, "road", road=True)],
+                   {"CAM": Camera("CAM", 100, 60, np.eye(3))}, frames, None, root)
+    kw = sample_inputs(3, seed=2)
+    kw.pop("trajectory")
+    kw["detections"] = [
+        {"frame": 1, "camera": "CAM", "box": [10, 10, 30, 30], "cls": 0, "conf": 0.5, "kept": True, "reason": "kept",
+         "mapped": True},
+        {"frame": 1, "camera": "CAM", "box": [50, 20, 70, 40], "cls": 3, "conf": 0.3, "kept": False,
+         "reason": "off_road"},
+        {"frame": 0, "camera": "CAM", "box": [None, 1, 2, 3], "cls": 1, "conf": 0.2, "kept": False,
+         "reason": "bad_box"},
+        {"frame": 7, "camera": "CAM", "box": [1, 1, 2, 2], "cls": 1, "conf": 0.2, "kept": False,
+         "reason": "unknown_frame"}]
+    out = tmp_path / "run"
+    paths = write_outputs(out, seq=seq, output={"overlay_frames": 5, "sweep_tau_conf": (0.1, 0.4)},
+                          progress=False, **kw)
+    assert (out / "figures" / "frame_000001_CAM.png").is_file()
+    assert (out / "figures" / "frame_000000_CAM.png").is_file()  # drawn without its invalid box
+    assert not (out / "figures" / "frame_000007_CAM.png").exists()
+    assert (out / "figures" / "threshold_sweep.png").is_file()
+    assert "scene-x" in paths["report.html"].read_text()
+    paths = write_outputs(tmp_path / "bare", seq=seq, output={"figures": False, "report": False}, progress=False,
+                          **kw)
+    assert "report.html" not in paths and not list((tmp_path / "bare" / "figures").iterdir())

@@ -11,7 +11,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def synth(
         out: Path = typer.Option(..., "--out", help="Sequence folder to create."),
-        preset: str = typer.Option("nuscenes-like", help="nuscenes-like (6 cameras, 2 Hz) or kitti-like (front, 10 Hz)."),
+        preset: str = typer.Option("nuscenes-like", help="nuscenes-like (6 cameras, 2 Hz) or kitti-like (1, 10 Hz)."),
         seed: int = typer.Option(0, help="Random seed: same seed, same files."),
         frames: int | None = typer.Option(None, help="Number of frames (default: 40 nuscenes-like, 80 kitti-like)."),
         scale: float | None = typer.Option(None, help="Image scale (default: 0.5 nuscenes-like, 1.0 kitti-like)."),

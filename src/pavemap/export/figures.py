@@ -109,12 +109,52 @@ def format_value(v: object) -> str:
     return str(v)
 
 
-def key_metric_lines(metrics: dict | None, limit: int = 12) -> list[tuple[str, str]]:
-    """(name, value) pairs for the statistics panel: the paper's metrics first, then the rest."""
+# headline metrics: (group title, prefixes tried in order, leaf names in display order)
+HEADLINE_GROUPS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
+    ("paper metrics", ("", "paper."), ("filter_rate", "on_road_precision", "orp", "msr", "coverage",
+                                        "obs_per_vertex", "mean_severity", "severity", "avg_distance_m",
+                                        "total_detections", "mapped_detections")),
+    ("evaluation", ("evaluation.", "eval."), ("precision", "recall", "f1", "median_error_m", "loc_error_m",
+                                              "class_accuracy", "matched", "predicted", "truth")),
+    ("road mesh", ("mesh.",), ("psnr", "sem_acc", "height_rmse")),
+    ("seconds", ("seconds.", "timing."), ()),
+)
+
+
+def headline_metrics(metrics: dict | None) -> list[tuple[str, list[tuple[str, str]]]]:
+    """The metrics a reader looks at first, grouped: [(group, [(name, value), ...]), ...].
+
+    Groups: the paper's statistics (SPEC §4), the evaluation against ground truth, the mesh quality
+    and the per-stage seconds (all leaves of ``seconds``/``timing``). Deeper entries (per class,
+    baselines, histories) are left for the full table.
+    """
     flat = flatten_metrics(metrics)
-    order = sorted(flat, key=lambda k: (next((i for i, m in enumerate(KEY_METRICS) if k.split(".")[-1] == m),
-                                             len(KEY_METRICS)), k))
-    return [(k, format_value(flat[k])) for k in order[:limit]]
+    out = []
+    for title, prefixes, leaves in HEADLINE_GROUPS:
+        rows: list[tuple[str, str]] = []
+        if leaves:
+            for leaf in leaves:
+                key = next((p + leaf for p in prefixes if p + leaf in flat), None)
+                if key is not None:
+                    rows.append((leaf, format_value(flat[key])))
+        else:
+            for p in prefixes:
+                rows += [(k[len(p):], format_value(v)) for k, v in flat.items()
+                         if k.startswith(p) and "." not in k[len(p):]]
+                if rows:
+                    break
+        if rows:
+            out.append((title, rows))
+    return out
+
+
+def key_metric_lines(metrics: dict | None, limit: int = 12) -> list[tuple[str, str]]:
+    """(name, value) pairs for the statistics panel: the headline metrics, else the first entries."""
+    lines = [(f"{name}" if title != "seconds" else f"{name} s", v)
+             for title, rows in headline_metrics(metrics) for name, v in rows]
+    if not lines:
+        lines = [(k, format_value(v)) for k, v in flatten_metrics(metrics).items()]
+    return lines[:limit]
 
 
 def fig_bev_overview(path: str | os.PathLike, bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
@@ -165,9 +205,10 @@ def fig_bev_overview(path: str | os.PathLike, bev_rgb: np.ndarray | None, bev_se
     bev_panel(fig.add_subplot(slots[1]), bev_semantic, "(b) BEV semantics")
     ax = fig.add_subplot(slots[2])
     if bev_rgb is not None and ext is not None:
-        # faded road so the defect colours stand out
-        ax.imshow((bev_rgb.astype(np.float32) * 0.55 + 255 * 0.45).astype(np.uint8), origin="lower",
-                  extent=ext, interpolation="nearest")
+        # faded road so the defect colours stand out; cells off the mesh (black) become white
+        faded = (bev_rgb.astype(np.float32) * 0.55 + 255 * 0.45).astype(np.uint8)
+        faded[np.all(bev_rgb == 0, axis=-1)] = 255
+        ax.imshow(faded, origin="lower", extent=ext, interpolation="nearest")
     if prob_map is not None and grid is not None:
         pm = np.ma.masked_less(np.asarray(prob_map, dtype=np.float32), 0.02)
         ax.imshow(pm, origin="lower", extent=grid_extent(grid), cmap="magma_r", vmin=0, vmax=1, alpha=0.6,
@@ -213,7 +254,7 @@ def fig_bev_overview(path: str | os.PathLike, bev_rgb: np.ndarray | None, bev_se
     lines = [("defects", str(len(instances))), ("total area", f"{area:.2f} m²"),
              ("total length", f"{length:.1f} m")]
     lines += [(p, str(sum(counts[p].values()))) for p in PRIORITIES]
-    lines += key_metric_lines(metrics, limit=12)
+    lines += key_metric_lines(metrics, limit=16)
     half = (len(lines) + 1) // 2
     for col, chunk in enumerate((lines[:half], lines[half:])):
         txt = "\n".join(f"{k:<21s} {v}" for k, v in chunk)
@@ -368,4 +409,5 @@ def select_overlay_frames(detections: list[dict], k: int = 3) -> list[tuple[int,
 
 __all__ = ["CLASS_COLOURS", "PRIORITY_COLOURS", "colour_semantics", "draw_instances", "fig_bev_overview",
            "fig_frame_overlay", "fig_threshold_sweep", "flatten_metrics", "format_value", "geometry_path",
-           "grid_extent", "key_metric_lines", "save_figure", "select_overlay_frames", "sweep_from_records"]
+           "grid_extent", "headline_metrics", "key_metric_lines", "save_figure", "select_overlay_frames",
+           "sweep_from_records"]

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pavemap import __version__
-from pavemap.export.figures import CLASS_COLOURS, flatten_metrics, format_value, grid_extent
+from pavemap.export.figures import CLASS_COLOURS, flatten_metrics, format_value, grid_extent, headline_metrics
 from pavemap.export.geojson import _polygons, instance_properties
 from pavemap.export.report_assets import CSS, JS
 from pavemap.export.tables import PRIORITY_RANK
@@ -85,7 +85,7 @@ def _image_el(el_id: str, uri: str, grid: dict, hidden: bool = False) -> str:
     x0, x1, y0, y1 = grid_extent(grid)
     cls = ' class="hidden"' if hidden else ""
     return (f'<image id="{el_id}"{cls} href="{uri}" x="{x0:.4f}" y="{-y1:.4f}" width="{x1 - x0:.4f}" '
-            f'height="{y1 - y0:.4f}" preserveAspectRatio="none" style="image-rendering:pixelated"/>')
+            f'height="{y1 - y0:.4f}" preserveAspectRatio="none"/>')
 
 
 def _detection_summary(detections: list[dict] | None) -> dict:
@@ -188,16 +188,19 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
         det_rows = [("detections", str(det["total"])), ("kept by the road filter", str(det["kept"])),
                     ("filtered", str(det["filtered"])), ("mapped onto the mesh", str(det["mapped"]))]
         det_rows += [(f"filtered: {r}", str(n)) for r, n in sorted(det["reasons"].items())]
-    # metrics grouped by their top-level key (e.g. paper / eval / timing), one small table each
-    groups: dict[str, list[tuple[str, str]]] = {}
-    for k, v in flat.items():
-        head_key, _, rest = k.partition(".")
-        groups.setdefault(head_key if rest else "metrics", []).append((rest or k, format_value(v)))
+    # headline metrics in small tables; everything else folded away in "all metrics"
     summary_tables = _kv_table(per_class, ("class", "instances"))
     if det_rows:
         summary_tables += _kv_table(det_rows, ("detections", "count"))
-    for g, rows_ in groups.items():
+    heads = headline_metrics(metrics)
+    if not heads and flat:
+        heads = [("metrics", [(k, format_value(v)) for k, v in list(flat.items())[:12]])]
+    for g, rows_ in heads:
         summary_tables += _kv_table(rows_, (g, "value"))
+    all_metrics = ""
+    if flat:
+        all_metrics = (f'<details class="allm"><summary>all metrics ({len(flat)})</summary><div class="cols">'
+                       + _kv_table([(k, format_value(v)) for k, v in flat.items()]) + "</div></details>")
 
     # ---- map
     layers, extents = [], []
@@ -285,7 +288,7 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
 <header><h1>{_esc(title)}</h1><div class="sub">{_esc(sub)}</div></header>
 <main>
 <section id="summary"><h2>Summary</h2><div class="cards">{cards_html}</div>{notice}
-<div class="kvgrid">{summary_tables}</div></section>
+<div class="kvgrid">{summary_tables}</div>{all_metrics}</section>
 <div class="split">
 <section id="map-section"><h2>Defect map</h2>
 <div class="toolbar"><button id="zoom-in" title="zoom in">+</button><button id="zoom-out" title="zoom out">−</button>

@@ -82,6 +82,11 @@ figure { margin:0; border:1px solid var(--line); border-radius:6px; padding:8px;
 figure img { width:100%; height:auto; display:block; }
 figcaption { color:var(--muted); font-size:12px; margin-top:4px; }
 details pre { background:#f6f8fa; padding:10px; border-radius:6px; overflow:auto; max-height:420px; font-size:12px; }
+details.allm { margin-top:10px; font-size:13px; }
+details.allm summary { cursor:pointer; color:var(--accent); }
+details.allm .cols { column-width:330px; column-gap:28px; margin-top:6px; }
+details.allm table.kv { width:100%; min-width:0; }
+details.allm table.kv td:first-child { word-break:break-all; }
 footer { color:var(--muted); font-size:12px; text-align:center; padding:4px 0 18px; }
 """
 
@@ -152,6 +157,9 @@ JS = r"""
   if (svg) {
     var v0 = data.view;
     home = { x: v0[0], y: v0[1], w: v0[2], h: v0[3] };
+    // fit the map box to the map's shape: a long road strip gets a short box, a square scene a tall one
+    var ww = wrap.getBoundingClientRect().width;
+    if (ww > 0) wrap.style.height = Math.round(Math.min(640, Math.max(340, ww * v0[3] / v0[2] + 24))) + "px";
     setView(home);
     window.addEventListener("resize", function () { setView(vb); });
     svg.addEventListener("wheel", function (e) {

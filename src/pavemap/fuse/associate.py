@@ -188,7 +188,7 @@ def associate_hit(hf, o: torch.Tensor, d: torch.Tensor, cfg: FusionConfig) -> As
 
 
 def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tensor,  # noqa: ANN001
-                        cfg: FusionConfig, max_cells: int = 200) -> Association:
+                        cfg: FusionConfig) -> Association:
     """Vertices whose projection falls inside the box: the box's footprint on the surface.
 
     boxes (N, 4) float64, K (N, 3, 3), T (N, 4, 4). The centre ray is intersected with the
@@ -197,10 +197,12 @@ def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tenso
     64 rays per box was 20x slower for the same candidates) to bound the candidate rectangle,
     padded by 2 cells. Membership itself is exact: a valid vertex is associated when it
     projects inside the box with positive depth. A box too small to contain a vertex maps to
-    the vertex nearest its centre hit. ``max_cells`` caps the rectangle's side (grazing views).
+    the vertex nearest its centre hit. ``cfg.footprint_max_m`` caps the rectangle's side: a far box
+    one pixel tall covers metres of road at grazing angles, more than any defect.
     """
     n = boxes.shape[0]
     dev = boxes.device
+    max_cells = max(2, int(round(cfg.footprint_max_m / hf.res)))
     G = max(2, cfg.footprint_grid)
     g = torch.linspace(0.0, 1.0, G, device=dev, dtype=torch.float64)
     gu, gv = torch.meshgrid(g, g, indexing="xy")
@@ -234,6 +236,9 @@ def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tenso
     i0, i1 = torch.maximum(i0, ri - half), torch.minimum(i1, ri + half)
     j0, j1 = torch.maximum(j0, rj - half), torch.minimum(j1, rj + half)
     i0, j0, i1, j1 = _clip_window(hf, i0, j0, i1, j1)
+    # Projection matrices P = K [R^T | -R^T t], so a candidate's projection is one small gather.
+    Rt = T[:, :3, :3].transpose(1, 2)
+    Pm = K @ torch.cat([Rt, -(Rt @ T[:, :3, 3:])], 2)
     dets, vids = [], []
     dmin = torch.full((n,), float("inf"), dtype=torch.float64, device=dev)
     near_d = torch.full((n,), float("inf"), dtype=torch.float64, device=dev)
@@ -247,10 +252,9 @@ def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tenso
         keep = valid[vid]
         det, vid = det[keep], vid[keep]
         X = _vertex_xyz(hf, vid)
-        Tw = T[det]
-        pc = ((X - Tw[:, :3, 3]).unsqueeze(1) @ Tw[:, :3, :3]).squeeze(1)  # X_c = R^T (X_w - t)
-        zc = pc[:, 2]
-        uvw = (K[det] @ pc.unsqueeze(-1)).squeeze(-1)
+        Pd = Pm[det]  # (P, 3, 4) projection rows of each candidate's view
+        uvw = (Pd[:, :, :3] * X[:, None, :]).sum(-1) + Pd[:, :, 3]
+        zc = uvw[:, 2]
         uu = uvw[:, 0] / zc.clamp(min=1e-9)
         vv = uvw[:, 1] / zc.clamp(min=1e-9)
         b = boxes[det]

@@ -21,7 +21,8 @@ class FusionConfig:
       (road rendered from the mesh), ``both`` (both ratios must pass).
     - ``association``: ``ray`` (paper point-to-ray distance, ``d = beta0*r + beta1*(1-conf)``),
       ``hit`` (vertices within ``hit_radius_m`` of the ray's surface hit), ``footprint``
-      (vertices whose projection lies inside the box, found from a ``footprint_grid``² ray grid).
+      (vertices whose projection lies inside the box; candidates from a ``footprint_grid``² grid of
+      rays over the box, the rectangle capped at ``footprint_max_m``).
     - ``alpha``: EMA weight of a new observation in the severity (paper 0.3).
     - ``prob``: ``tanh`` = 2σ(x)-1 (SPEC erratum, 0 when unobserved) or ``sigmoid`` (paper).
     - ``n_min``: a vertex is a defect vertex when observed at least this often.
@@ -37,7 +38,8 @@ class FusionConfig:
     beta0: float = 2.5
     beta1: float = 0.0
     hit_radius_m: float = 0.3
-    footprint_grid: int = 8
+    footprint_grid: int = 4
+    footprint_max_m: float = 6.0
     max_dist_m: float = 200.0
     prob: str = "tanh"
     n_min: int = 2
@@ -67,7 +69,7 @@ class FusionConfig:
             raise PavemapError(f"fusion.tau_conf must be in [0, 1], got {self.tau_conf}")
         if len(self.severity_weights) != 4:
             raise PavemapError(f"fusion.severity_weights needs 4 values (D00 D10 D20 D40), got {self.severity_weights}")
-        for name in ("hit_radius_m", "splat_res", "max_dist_m", "mesh_mask_scale"):
+        for name in ("hit_radius_m", "splat_res", "max_dist_m", "mesh_mask_scale", "footprint_max_m"):
             if not getattr(self, name) > 0:
                 raise PavemapError(f"fusion.{name} must be positive, got {getattr(self, name)}")
         if self.splat_sigma < 0 or self.beta0 < 0 or self.beta1 < 0:

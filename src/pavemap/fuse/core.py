@@ -62,7 +62,7 @@ def _device(config: FusionConfig, surface) -> torch.device:  # noqa: ANN001
     return torch.device(config.device)
 
 
-def associate(seq: Sequence, dets: list[Detection], surface, config: FusionConfig) -> Association:  # noqa: ANN001
+def associate_detections(seq: Sequence, dets: list[Detection], surface, config: FusionConfig) -> Association:  # noqa: ANN001
     """Run the configured association mode for (already filtered) detections on ``surface``."""
     dev = surface.heights.device
     n = len(dets)
@@ -103,7 +103,7 @@ def fuse(
         surface = surface.to(dev)
     with torch.no_grad():
         t1 = time.perf_counter()
-        asc = associate(seq, kept, surface, config)
+        asc = associate_detections(seq, kept, surface, config)
         steps.update()
         t_assoc = time.perf_counter() - t1
         # Application order for the EMA: frame order of the sequence, then input order.

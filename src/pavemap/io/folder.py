@@ -251,8 +251,12 @@ def import_folder(
         cam = next(iter(cameras.values()))
         from pavemap.io.sfm import sfm_poses
 
-        Ts = sfm_poses(per_cam[cam.name], cam, camera_height=camera_height).T_world_cam
-        rows = [PoseRow(i, cam.name, None, None, T) for i, T in enumerate(Ts)]
+        res = sfm_poses(per_cam[cam.name], cam, camera_height=camera_height)
+        # frames SfM could not register are left out (logged by sfm_poses); image names kept explicit
+        rows = [
+            PoseRow(i, cam.name, None, str(per_cam[cam.name][i].relative_to(images_dir)), res.T_world_cam[i])
+            for i in np.nonzero(res.registered)[0]
+        ]
     else:
         rows = read_poses_csv(poses)
 
@@ -403,7 +407,10 @@ def import_video(
     if str(poses).lower() == "sfm":
         from pavemap.io.sfm import sfm_poses
 
-        Ts = sfm_poses(paths, cam, camera_height=camera_height).T_world_cam
+        res = sfm_poses(paths, cam, camera_height=camera_height)
+        Ts = res.T_world_cam
+        for i in np.nonzero(~res.registered)[0]:  # frames SfM could not register are dropped
+            paths[i].unlink(missing_ok=True)
     else:
         rows = read_poses_csv(poses)
         if all(r.timestamp is not None for r in rows) and len(rows) >= 2:
@@ -418,6 +425,7 @@ def import_video(
     frames = [
         Frame(i, float(times[i]), {cam.name: View(cam.name, f"images/{cam.name}/{p.name}", Ts[i])})
         for i, p in enumerate(paths)
+        if np.isfinite(Ts[i]).all()
     ]
     seq = Sequence(name or video.stem, list(DEFAULT_CLASSES), {cam.name: cam}, frames)
     write_sequence(seq, out)

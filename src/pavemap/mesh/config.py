@@ -27,6 +27,7 @@ class MeshConfig:
     lr_sem: float = 0.1
     lr_height: float = 0.001
     lr_pose: float = 0.001
+    lr_decay_final: float = 0.1  # learning rates decay exponentially to this fraction by the last step
     w_rgb: float = 1.0
     w_sem: float = 0.5
     w_depth: float = 1.0  # lambda_depth, used only where depth maps exist
@@ -39,6 +40,7 @@ class MeshConfig:
     holdout_every: int = 10  # every k-th frame is held out for metrics (0: none)
     seed: int = 0
     device: str = "auto"
+    threads: int | None = None  # torch CPU threads during the run (None: leave torch's setting)
     pose_refine: bool = False
     camera_height: float = 1.5  # initial road plane below the median camera centre (m)
     init_height_search: bool = True  # refine the initial plane height by multi-view colour agreement

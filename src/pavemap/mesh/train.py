@@ -113,6 +113,35 @@ def _plane_search(pool: PixelPool, z0: float, res: float, n_max: int = 60000, se
     return best_z
 
 
+class MultiOptimizer:
+    """Dense Adam (MLP, poses) and sparse Adam (vertex colours, logits) stepped together; the
+    learning rates of all groups follow one decay factor from their base values."""
+
+    def __init__(self, *opts: torch.optim.Optimizer):
+        self.opts = opts
+        self.base = [[g["lr"] for g in o.param_groups] for o in opts]
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for o in self.opts:
+            o.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        for o in self.opts:
+            o.step()
+
+    def set_lr_factor(self, f: float) -> None:
+        for o, base in zip(self.opts, self.base, strict=True):
+            for g, b in zip(o.param_groups, base, strict=True):
+                g["lr"] = b * f
+
+    def state_dict(self) -> dict:
+        return {"opts": [o.state_dict() for o in self.opts]}
+
+    def load_state_dict(self, state: dict) -> None:
+        for o, s in zip(self.opts, state["opts"], strict=True):
+            o.load_state_dict(s)
+
+
 def _psnr(mse: float) -> float:
     return float(10 * math.log10(1.0 / max(mse, 1e-10)))
 
@@ -180,6 +209,17 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
     Metrics: psnr (held-out road pixels), sem_acc, height_rmse (with synthetic truth), seconds,
     vertices, faces, device, history (per epoch), warnings.
     """
+    threads_before = torch.get_num_threads()
+    if config.threads:
+        torch.set_num_threads(int(config.threads))
+    try:
+        return _reconstruct(seq, out_dir, config, progress)
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool
+                 ) -> tuple[RoadMesh, dict]:
     from pavemap.mesh.outputs import load_checkpoint, save_checkpoint, write_outputs
 
     t_start = time.perf_counter()
@@ -242,14 +282,17 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
     delta = None
     if cfg.pose_refine:
         delta = torch.nn.Parameter(torch.zeros(len(pool.keys), 6, device=device))
-    groups = [
-        {"params": list(model.height_mlp.parameters()), "lr": cfg.lr_height, "name": "height"},
-        {"params": [model.rgb], "lr": cfg.lr_rgb, "name": "rgb"},
-        {"params": [model.sem], "lr": cfg.lr_sem, "name": "sem"},
-    ]
+    groups = [{"params": list(model.height_mlp.parameters()), "lr": cfg.lr_height, "name": "height"}]
     if delta is not None:
         groups.append({"params": [delta], "lr": cfg.lr_pose, "name": "pose"})
-    opt = torch.optim.Adam(groups)
+    # Per-vertex colours and logits get gradients only where a sampled pixel hits them; dense Adam would
+    # keep moving every other vertex on stale momentum (overshooting by ~30 lr), so these use the lazy
+    # (sparse) Adam, which updates only the rows hit in the step.
+    opt = MultiOptimizer(torch.optim.Adam(groups), torch.optim.SparseAdam([
+        {"params": [model.rgb], "lr": cfg.lr_rgb, "name": "rgb"},
+        {"params": [model.sem], "lr": cfg.lr_sem, "name": "sem"},
+    ]))
+    all_params = [p for grp in groups for p in grp["params"]] + [model.rgb, model.sem]
 
     # Drop pixels whose rays cannot meet the mesh (sky, far off the crop): they would fill batches with misses.
     with torch.no_grad():
@@ -291,6 +334,7 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
     n_epoch = max(1, int(round(len(pool) * min(cfg.pixel_fraction, 1.0))))
     steps_per_epoch = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
     depth_on = use_depth and pool.depth is not None and cfg.w_depth > 0
+    total_steps = max(1, cfg.epochs * steps_per_epoch)
     bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, disable=not progress, desc="mesh",
                unit="step", dynamic_ncols=True)
     bad = 0
@@ -326,7 +370,7 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
             hit = hits_to_rayhit(hf, o, d, cells)
             rows = cells.idx
             bary = hit.bary[rows]
-            rgb = (bary[..., None] * model.rgb[tri]).sum(1)
+            rgb = (bary[..., None] * F.embedding(tri, model.rgb, sparse=True)).sum(1)
             gt = pool.rgb[b][rows].float() / 255.0
             l_rgb = (rgb - gt).abs().mean()
             loss = cfg.w_rgb * l_rgb
@@ -335,7 +379,7 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
                 ch = pool.channel[b][rows]
                 lab = ch >= 0
                 if lab.any():
-                    sem = (bary[lab][..., None] * model.sem[tri[lab]]).sum(1)
+                    sem = (bary[lab][..., None] * F.embedding(tri[lab], model.sem, sparse=True)).sum(1)
                     l_sem = F.cross_entropy(sem, ch[lab])
                     loss = loss + cfg.w_sem * l_sem
             l_depth = torch.zeros((), device=device)
@@ -357,7 +401,8 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
                 continue
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            grads_ok = all(p.grad is None or torch.isfinite(p.grad).all() for grp in groups for p in grp["params"])
+            grads_ok = all(p.grad is None or torch.isfinite(p.grad.coalesce().values() if p.grad.is_sparse
+                                                             else p.grad).all() for p in all_params)
             if not grads_ok:
                 bad += 1
                 opt.zero_grad(set_to_none=True)
@@ -366,6 +411,7 @@ def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progres
                 bar.update(1)
                 continue
             bad = 0
+            opt.set_lr_factor(cfg.lr_decay_final ** ((epoch * steps_per_epoch + step) / total_steps))
             opt.step()
             with torch.no_grad():
                 road = pool.road[b][rows]

@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 from PIL import Image
 
 from pavemap.errors import PavemapError
@@ -24,7 +23,7 @@ from pavemap.io.atomic import atomic_write_json, atomic_write_text
 from pavemap.io.sequence import read_sequence, save_depth, write_sequence
 from pavemap.synth.render import render_view, resolve_device
 from pavemap.synth.rig import DEFAULT_SCALE, RIGS, camera_pose, rig_cameras, vehicle_poses
-from pavemap.synth.world import CLASSES, World, blob_polygon, make_world
+from pavemap.synth.world import CLASSES, World, blob_polygon, make_world, torch_threads
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, Frame, GeoOrigin, SemanticClass, Sequence, View
 
 DEPTH_MODES = ("none", "sparse", "dense")
@@ -74,25 +73,22 @@ def synthesize(out: Path, preset: str = "nuscenes-like", seed: int = 0, frames: 
     if occupied and not overwrite:
         raise PavemapError(f"{out} already exists; choose another --out or pass --overwrite")
     dev = resolve_device(device)
-    old_threads = torch.get_num_threads()
-    if threads:
-        torch.set_num_threads(int(threads))
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir(parents=True)
-        world = make_world(preset, seed, frames=frames, **overrides)
-        seq = _render_sequence(world, tmp, scale, depth, dev, progress, tqdm)
-        _write_truth(world, tmp)
-        write_sequence(seq, tmp)
-        read_sequence(tmp)  # validate what we wrote before it can look complete
+        with torch_threads(threads):
+            if tmp.exists():
+                shutil.rmtree(tmp)
+            tmp.mkdir(parents=True)
+            world = make_world(preset, seed, threads=None, frames=frames, **overrides)
+            seq = _render_sequence(world, tmp, scale, depth, dev, progress, tqdm)
+            _write_truth(world, tmp)
+            write_sequence(seq, tmp)
+            read_sequence(tmp)  # validate what we wrote before it can look complete
         if out.exists():
             shutil.rmtree(out) if out.is_dir() else out.unlink()
         out.parent.mkdir(parents=True, exist_ok=True)
         os.replace(tmp, out)
     finally:
-        torch.set_num_threads(old_threads)
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
     seq.root = out
@@ -117,7 +113,7 @@ def _render_sequence(world: World, root: Path, scale: float, depth: str, dev, pr
             cam = cams[m.name]
             T = camera_pose(poses[fi], m)
             r = render_view(world, cam, T, exposure=float(exposure[fi]), white_balance=wb[m.name],
-                            noise_seed=fi * 16 + ci, device=dev)
+                            noise_seed=fi * 16 + ci, device=dev, threads=None)
             name = f"{fi:06d}.png"
             img = f"images/{m.name}/{name}"
             sem = f"semantics/{m.name}/{name}"
@@ -158,9 +154,13 @@ def lidar_mask(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, T_worl
     ring = np.linspace(-30.67, 10.67, beams)
     k = np.clip(np.round((elev - ring[0]) / (ring[1] - ring[0])), 0, beams - 1)
     pix_deg = np.degrees(1.0 / K[1, 1])
-    on_ring = np.abs(elev - ring[k.astype(int)]) < 0.75 * pix_deg
+    on_ring = np.abs(elev - ring[k.astype(int)]) < 0.5 * pix_deg
     rng = np.random.default_rng([seed, frame, cam, 7])
-    keep = on_ring & (rng.random((H, W)) < 0.9) & (depth > 0) & (depth * np.linalg.norm(rays, axis=-1) < max_range)
+    keep = on_ring & (depth > 0) & (depth * np.linalg.norm(rays, axis=-1) < max_range)
+    # one ring is one pixel row whatever the resolution, so small images get a larger share:
+    # thin out to ~4 % (and drop 10 % of returns anyway, like a real scanner)
+    frac = max(float(keep.mean()), 1e-9)
+    keep &= rng.random((H, W)) < 0.9 * min(1.0, 0.04 / frac)
     return np.where(keep, depth, 0.0).astype(np.float32)
 
 

@@ -23,6 +23,7 @@ import torch
 from pavemap.synth.world import (
     BUILDING,
     DECOY_ID_OFFSET,
+    DEFAULT_THREADS,
     OBJECT_KINDS,
     ROAD,
     SKY,
@@ -33,6 +34,7 @@ from pavemap.synth.world import (
     ground_label,
     markings,
     st_lookup,
+    torch_threads,
     value_noise,
 )
 from pavemap.types import Camera
@@ -358,10 +360,8 @@ def _ground_shade(world: World, tw: dict, px, py, lam_fp):
                 (1 - base)[:, None] * 4)
             codes = torch.where(member, it["prm"][item, 1].long(), torch.zeros_like(item))
             code.scatter_reduce_(0, pi, codes, reduce="amax")
-    if tw["shgrid"] is not None:
-        sh = bilinear_t(tw["shadow"], tw["shgrid"], px, py).clamp(0, 1)
-    else:
-        sh = torch.zeros_like(s)
+    has_sh = tw["shgrid"] is not None
+    sh = bilinear_t(tw["shadow"], tw["shgrid"], px, py).clamp(0, 1) if has_sh else torch.zeros_like(s)
     return col, lab, nrm, sh, code
 
 
@@ -467,8 +467,14 @@ CHUNK_PIXELS = 262144  # rays per chunk: bounds memory on large images
 
 def render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure: float = 1.0,
                 white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0), noise_seed: int = 0,
-                device: str | torch.device = "cpu") -> RenderOutput:
+                device: str | torch.device = "cpu", threads: int | None = DEFAULT_THREADS) -> RenderOutput:
     """Render one view of ``world`` seen by ``camera`` at pose ``T_world_cam`` (4, 4) camera-to-world."""
+    with torch_threads(threads):
+        return _render_view(world, camera, T_world_cam, exposure, white_balance, noise_seed, device)
+
+
+def _render_view(world: World, camera: Camera, T_world_cam: np.ndarray, exposure: float,
+                 white_balance: tuple[float, float, float], noise_seed: int, device) -> RenderOutput:
     dev = resolve_device(device)
     tw = world.tensors(dev)
     H, W = camera.height, camera.width
