@@ -21,7 +21,7 @@ CAM_H = 1.65
 N = 4
 
 
-def _P(i: int) -> np.ndarray:
+def _proj(i: int) -> np.ndarray:
     return K @ np.hstack([np.eye(3), np.array(T_I[i], float)[:, None]])
 
 
@@ -61,11 +61,11 @@ def write_fixture(root, calib_style="labelled", grey=True, colour=True, velodyne
             pts = np.hstack([velo, rng.uniform(0, 1, (len(x), 1))]).astype(np.float32)
             pts.tofile(seq / "velodyne" / f"{k:06d}.bin")
     if calib_style == "labelled":
-        lines = [f"P{i}: {_fmt(_P(i))}" for i in range(4)] + [f"Tr: {_fmt(TR[:3])}"]
+        lines = [f"P{i}: {_fmt(_proj(i))}" for i in range(4)] + [f"Tr: {_fmt(TR[:3])}"]
     elif calib_style == "bare5":
-        lines = [_fmt(_P(i)) for i in range(4)] + [_fmt(TR[:3])]
+        lines = [_fmt(_proj(i)) for i in range(4)] + [_fmt(TR[:3])]
     else:  # two bare rows: P0, P1 only
-        lines = [_fmt(_P(i)) for i in range(2)]
+        lines = [_fmt(_proj(i)) for i in range(2)]
     (seq / "calib.txt").write_text("\n".join(lines) + "\n")
     (seq / "times.txt").write_text("\n".join(f"{0.1 * k:.6e}" for k in range(N)) + "\n")
     (root / "poses").mkdir()
@@ -76,7 +76,7 @@ def write_fixture(root, calib_style="labelled", grey=True, colour=True, velodyne
 def _project_kitti(Xk: np.ndarray, k: int, cam: int) -> np.ndarray:
     """KITTI's own convention: u ~ P_cam · inv(T_cam0_k) · X."""
     Xc0 = np.linalg.inv(_poses()[k]) @ np.append(Xk, 1.0)
-    u = _P(cam) @ Xc0
+    u = _proj(cam) @ Xc0
     return u[:2] / u[2]
 
 
@@ -171,3 +171,22 @@ def test_bad_inputs(tmp_path):
     (root / "sequences/00/calib.txt").write_text("P0: 1 2 3\n")
     with pytest.raises(SequenceError, match="P0 has 3 numbers"):
         import_kitti(root, "00", tmp_path / "seq")
+
+
+def test_cli_import_kitti_with_corridor_fallback(tmp_path):
+    from typer.testing import CliRunner
+
+    from pavemap.cli import app
+    from pavemap.io.sequence import load_semantics
+
+    root = write_fixture(tmp_path / "kitti")
+    with pytest.warns(UserWarning, match="corridor"):
+        r = CliRunner().invoke(app, ["import", "kitti", str(root), "--sequence", "00", "--camera", "2",
+                                     "--stride", "2", "--out", str(tmp_path / "seq")])
+    assert r.exit_code == 0, r.output
+    assert "kitti-00: 2 frames" in r.output and "corridor fallback" in r.output
+    s = read_sequence(tmp_path / "seq")
+    m = load_semantics(s.path(s.frames[0].views["cam2"].semantics))
+    assert m.shape == (H, W) and (m[-1, W // 2] == 0)  # ground right below the camera is road
+    r = CliRunner().invoke(app, ["import", "kitti", str(root), "--sequence", "05", "--out", str(tmp_path / "s2")])
+    assert r.exit_code != 0

@@ -162,3 +162,16 @@ def test_bad_inputs(tmp_path):
     img.unlink()
     with pytest.raises(SequenceError, match="image not found"):
         import_nuscenes(root, "scene-0064", tmp_path / "seq", version=VERSION)
+
+
+def test_cli_import_nuscenes(tmp_path):
+    from typer.testing import CliRunner
+
+    from pavemap.cli import app
+
+    root = write_dataset(tmp_path / "nus", sweeps=False)
+    r = CliRunner().invoke(app, ["import", "nuscenes", str(root), "--scene", "scene-0064", "--cameras",
+                                 "CAM_FRONT,CAM_BACK", "--no-semantics", "--out", str(tmp_path / "seq")])
+    assert r.exit_code == 0, r.output
+    assert "scene-0064: 3 frames, 6 views, semantics: none" in r.output
+    assert sorted(read_sequence(tmp_path / "seq").cameras) == ["CAM_BACK", "CAM_FRONT"]

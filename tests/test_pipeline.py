@@ -118,7 +118,7 @@ def test_readme_python_example_runs(tiny_seq, tmp_path):
     assert m, "README lost its Python API example"
     code = m.group(1)
     seq_copy = tmp_path / "my_drive"
-    shutil.copytree(tiny_seq, seq_copy)
+    shutil.copytree(tiny_seq.root, seq_copy)
     code = code.replace('"my_drive"', repr(str(seq_copy))).replace('"runs/my_drive"', repr(str(tmp_path / "r")))
     code = code.replace("config.mesh.epochs = 7", "config.mesh.epochs = 1")
     namespace: dict = {}

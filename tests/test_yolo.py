@@ -257,3 +257,43 @@ def test_resolve_data_yaml(tmp_path):
     f.write_text("path: .\ntrain: images/train\nval: images/test\nnames: {0: D00}\n")
     with pytest.raises(PavemapError, match="val folder"):
         resolve_data_yaml(f, tmp_path / "run")
+
+
+def test_compat_is_noop_when_op_exists():
+    """Where torchvision's compiled nms is registered (a working install), the shim must not install."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch\n"
+        "lib = torch.library.Library('torchvision', 'DEF')\n"
+        "lib.define('nms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor')\n"
+        "from pavemap.detect import compat\n"
+        "print(compat.ensure_torchvision(), compat.shim_installed(), compat._STATE['library'] is None)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["False", "False", "True"]
+
+
+@pytest.mark.slow
+def test_train_detector_tiny(yolo_env, tmp_path):
+    """One CPU epoch on 4 tiny images through train_detector; the result loads as a D00..D40 detector."""
+    from pavemap.detect.yolo import load_detector, train_detector
+
+    ds = tmp_path / "ds"
+    rng = np.random.default_rng(0)
+    for split in ("train", "val"):
+        (ds / "images" / split).mkdir(parents=True)
+        (ds / "labels" / split).mkdir(parents=True)
+        for k in range(4 if split == "train" else 2):
+            Image.fromarray(rng.integers(0, 255, (64, 64, 3), dtype=np.uint8)).save(ds / "images" / split / f"{k}.jpg")
+            (ds / "labels" / split / f"{k}.txt").write_text(f"{k % 4} 0.5 0.5 0.3 0.2\n")
+    (ds / "data.yaml").write_text(
+        "path: .\ntrain: images/train\nval: images/val\nnames: {0: D00, 1: D10, 2: D20, 3: D40}\n"
+    )
+    best = train_detector(ds / "data.yaml", model="yolov8n.yaml", epochs=1, imgsz=64, device="cpu", batch=4,
+                          project=tmp_path / "runs", name="t", workers=0)
+    assert best.is_file() and best.parent.name == "weights"
+    m = load_detector(best)
+    assert m.names == {0: "D00", 1: "D10", 2: "D20", 3: "D40"}

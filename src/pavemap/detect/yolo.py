@@ -251,6 +251,7 @@ def train_detector(
     from ultralytics import YOLO
 
     trainer_mod.check_amp = _offline_amp_check
+    logging.getLogger("ultralytics").setLevel(logging.INFO)  # training progress is worth seeing
     if resume is not None:
         yolo = YOLO(str(_check_weights_path(resume)))
         results = yolo.train(resume=True)

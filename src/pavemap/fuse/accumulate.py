@@ -18,15 +18,16 @@ from pavemap.types import NUM_DEFECT_CLASSES
 
 @dataclass
 class Accumulators:
-    """Dense per-vertex state, flat ``j*nx+i``: counts (V, 4) long, sev (V,) float64, conf (V,) float64."""
+    """Dense per-vertex state, flat ``j*nx+i``: counts (V, 4) int32, sev (V,) float64, conf (V,) float64."""
 
     counts: torch.Tensor
     sev: torch.Tensor
     conf: torch.Tensor
+    seen: torch.Tensor | None = None  # (M,) long sorted ids of the observed vertices, when known
 
     @property
     def n(self) -> torch.Tensor:
-        """(V,) long total observations per vertex."""
+        """(V,) total observations per vertex."""
         return self.counts.sum(1)
 
 
@@ -41,22 +42,28 @@ def accumulate(num_vertices: int, det: torch.Tensor, vid: torch.Tensor, order: t
     dev = vid.device
     V = num_vertices
     C = NUM_DEFECT_CLASSES
-    c = cls[det]
-    counts = torch.bincount(vid * C + c, minlength=V * C).reshape(V, C)
-    conf_v = torch.zeros(V, dtype=torch.float64, device=dev).scatter_reduce(
-        0, vid, conf[det].double(), reduce="amax", include_self=True)
+    counts = torch.zeros((V, C), dtype=torch.int32, device=dev)
     sev = torch.zeros(V, dtype=torch.float64, device=dev)
-    if vid.numel():
-        w = torch.as_tensor(severity_weights, dtype=torch.float64, device=dev)[c]
-        key = vid * (int(order.max()) + 1) + order[det]
-        perm = torch.argsort(key)
-        vs, ws = vid[perm], w[perm]
-        _, inv, group = torch.unique_consecutive(vs, return_inverse=True, return_counts=True)
-        first = torch.cumsum(group, 0) - group
-        rank = torch.arange(len(vs), device=dev) - first[inv]
-        expo = (group[inv] - 1 - rank).double()
-        sev.index_add_(0, vs, alpha * (1.0 - alpha) ** expo * ws)
-    return Accumulators(counts, sev, conf_v)
+    conf_v = torch.zeros(V, dtype=torch.float64, device=dev)
+    if vid.numel() == 0:
+        return Accumulators(counts, sev, conf_v, torch.zeros(0, dtype=torch.long, device=dev))
+    # Work on the observed vertices only (a few thousand of millions), then scatter into the dense state.
+    seen, local = torch.unique(vid, return_inverse=True)
+    m = len(seen)
+    c = cls[det]
+    counts[seen] = torch.bincount(local * C + c, minlength=m * C).reshape(m, C).to(torch.int32)
+    conf_v[seen] = torch.zeros(m, dtype=torch.float64, device=dev).scatter_reduce(
+        0, local, conf[det].double(), reduce="amax", include_self=True)
+    w = torch.as_tensor(severity_weights, dtype=torch.float64, device=dev)[c]
+    key = local * (int(order.max()) + 1) + order[det]
+    perm = torch.argsort(key)
+    ls, ws = local[perm], w[perm]
+    _, inv, group = torch.unique_consecutive(ls, return_inverse=True, return_counts=True)
+    first = torch.cumsum(group, 0) - group
+    rank = torch.arange(len(ls), device=dev) - first[inv]
+    expo = (group[inv] - 1 - rank).double()
+    sev[seen] = torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, ls, alpha * (1.0 - alpha) ** expo * ws)
+    return Accumulators(counts, sev, conf_v, seen)
 
 
 def probability(acc: Accumulators, mode: str = "tanh", eps: float = 1e-9) -> tuple[torch.Tensor, torch.Tensor]:

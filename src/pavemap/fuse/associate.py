@@ -164,10 +164,53 @@ def _hits(hf, o: torch.Tensor, d: torch.Tensor, cfg: FusionConfig) -> tuple[torc
     return r.points.detach().double(), r.hit
 
 
-def associate_hit(hf, o: torch.Tensor, d: torch.Tensor, cfg: FusionConfig) -> Association:  # noqa: ANN001
-    """Vertices within ``hit_radius_m`` (horizontal) of the centre ray's surface hit."""
+def footprint_centres(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tensor, pts: torch.Tensor,  # noqa: ANN001
+                      hit: torch.Tensor) -> torch.Tensor:
+    """Area centroid of each box's ground footprint (N, 3), from the centre hit ``pts`` (N, 3).
+
+    The box corners' rays meet the local plane ``z = z_hit`` in a quadrilateral (a projective
+    image of the box); its shoelace centroid is where the box's middle lies on the road. The
+    centre ray is biased toward the camera: a box's middle row sees the harmonic, not the
+    arithmetic, mean depth of its near and far edges. Boxes with a corner above the horizon, or
+    without a centre hit, keep the centre hit.
+    """
+    x1, y1, x2, y2 = boxes.unbind(1)
+    uv = torch.stack([torch.stack([x1, y1], 1), torch.stack([x2, y1], 1), torch.stack([x2, y2], 1),
+                      torch.stack([x1, y2], 1)], 1)  # (N, 4, 2) in ring order
+    n = boxes.shape[0]
+    o, d = rays_through(K.repeat_interleave(4, 0), T.repeat_interleave(4, 0), uv.reshape(-1, 2))
+    o, d = o.reshape(n, 4, 3), d.reshape(n, 4, 3)
+    lam = (pts[:, None, 2] - o[..., 2]) / d[..., 2].clamp(max=-1e-12)
+    ok = hit & (d[..., 2] < -1e-12).all(1) & (lam > 0).all(1)
+    q = o[..., :2] + lam[..., None] * d[..., :2]  # (N, 4, 2)
+    qx, qy = q[..., 0], q[..., 1]
+    nx_, ny_ = qx.roll(-1, 1), qy.roll(-1, 1)
+    cross = qx * ny_ - nx_ * qy
+    area = cross.sum(1) / 2
+    ok = ok & (area.abs() > 1e-12)
+    safe = torch.where(ok, area, torch.ones_like(area))
+    cx = ((qx + nx_) * cross).sum(1) / (6 * safe)
+    cy = ((qy + ny_) * cross).sum(1) / (6 * safe)
+    out = pts.clone()
+    # Stay with the centre hit where the quad centroid falls off the crop (a box straddling the edge).
+    z, inside = hf.height_at(torch.stack([cx, cy], 1).to(hf.heights.dtype))
+    ok = ok & inside
+    out[ok] = torch.stack([cx, cy, z.double()], 1)[ok]
+    return out
+
+
+def associate_hit(hf, o: torch.Tensor, d: torch.Tensor, cfg: FusionConfig,  # noqa: ANN001
+                  boxes: torch.Tensor | None = None, K: torch.Tensor | None = None,
+                  T: torch.Tensor | None = None) -> Association:
+    """Vertices within ``hit_radius_m`` (horizontal) of the detection's surface point.
+
+    The point is the centre ray's hit, or with ``cfg.hit_point == "footprint"`` (and boxes, K, T
+    given) the centroid of the box's ground footprint (:func:`footprint_centres`).
+    """
     n = o.shape[0]
     pts, hit = _hits(hf, o, d, cfg)
+    if cfg.hit_point == "footprint" and boxes is not None and K is not None and T is not None:
+        pts = footprint_centres(hf, boxes, K, T, pts, hit)
     radius = max(cfg.hit_radius_m, 0.75 * hf.res)  # never smaller than the cell: a hit always maps
     reach = int(radius / hf.res) + 1
     idx = torch.nonzero(hit).squeeze(1)
@@ -280,5 +323,6 @@ def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tenso
     dmin = torch.where(lone, near_d, dmin)
     mapped = torch.isfinite(dmin)
     dist = torch.where(mapped, dmin, torch.full_like(dmin, float("nan")))
-    hits = torch.where(ch[:, None], cp, torch.full_like(cp, float("nan")))
+    centres = footprint_centres(hf, boxes, K, T, cp, ch)
+    hits = torch.where(ch[:, None], centres, torch.full_like(cp, float("nan")))
     return Association(det, vid, mapped, dist, hits)

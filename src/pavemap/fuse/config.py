@@ -20,7 +20,9 @@ class FusionConfig:
     - ``mask``: road mask source for ``R_road``: ``frame`` (the view's semantic PNG), ``mesh``
       (road rendered from the mesh), ``both`` (both ratios must pass).
     - ``association``: ``ray`` (paper point-to-ray distance, ``d = beta0*r + beta1*(1-conf)``),
-      ``hit`` (vertices within ``hit_radius_m`` of the ray's surface hit), ``footprint``
+      ``hit`` (vertices within ``hit_radius_m`` of the detection's surface point: the centre ray's
+      hit, or by default, ``hit_point="footprint"``, the centroid of the box's ground footprint,
+      which removes the centre ray's bias toward the camera), ``footprint``
       (vertices whose projection lies inside the box; candidates from a ``footprint_grid``² grid of
       rays over the box, the rectangle capped at ``footprint_max_m``).
     - ``alpha``: EMA weight of a new observation in the severity (paper 0.3).
@@ -38,10 +40,12 @@ class FusionConfig:
     beta0: float = 2.5
     beta1: float = 0.0
     hit_radius_m: float = 0.3
+    hit_point: str = "footprint"  # hit mode: "centre" ray hit or the box "footprint" centroid
     footprint_grid: int = 4
     footprint_max_m: float = 6.0
     max_dist_m: float = 200.0
     prob: str = "tanh"
+    centroid: str = "detections"  # instance centre: mean of its detections' surface points, or "vertices"
     n_min: int = 2
     min_instance_obs: int = 2
     splat_res: float = 0.1
@@ -59,6 +63,10 @@ class FusionConfig:
             raise PavemapError(f"fusion.association must be one of {', '.join(ASSOCIATIONS)}, got {self.association!r}")
         if self.mask not in MASKS:
             raise PavemapError(f"fusion.mask must be one of {', '.join(MASKS)}, got {self.mask!r}")
+        if self.hit_point not in ("centre", "footprint"):
+            raise PavemapError(f"fusion.hit_point must be centre or footprint, got {self.hit_point!r}")
+        if self.centroid not in ("detections", "vertices"):
+            raise PavemapError(f"fusion.centroid must be detections or vertices, got {self.centroid!r}")
         if self.prob not in PROBS:
             raise PavemapError(f"fusion.prob must be tanh or sigmoid, got {self.prob!r}")
         if not 0.0 < self.alpha <= 1.0:

@@ -19,7 +19,7 @@ import shapely
 import torch
 
 from pavemap.detect.filter import INVALID_REASONS, filter_detections
-from pavemap.fuse.accumulate import accumulate, probability
+from pavemap.fuse.accumulate import Accumulators, accumulate, probability
 from pavemap.fuse.associate import Association, associate_footprint, associate_hit, associate_ray, rays_through
 from pavemap.fuse.config import FusionConfig
 from pavemap.fuse.instances import build_instances, priority
@@ -49,8 +49,8 @@ class FusionResult:
     metrics: dict
     baseline: list[DefectInstance] = field(default_factory=list)
     surface_grid: dict = field(default_factory=dict)
-    vertex_counts: np.ndarray | None = None  # (ny, nx, 4) int64 per-class observations
-    vertex_severity: np.ndarray | None = None  # (ny, nx) float32
+    vertex_counts: np.ndarray | None = None  # (ny, nx, 4) int32 per-class observations
+    vertex_severity: np.ndarray | None = None  # (ny, nx) float64 EMA severity
 
 
 def _device(config: FusionConfig, surface) -> torch.device:  # noqa: ANN001
@@ -79,7 +79,7 @@ def associate_detections(seq: Sequence, dets: list[Detection], surface, config: 
     o, d = rays_through(K, T, centre)
     if config.association == "ray":
         return associate_ray(surface, o, d, conf, config)
-    return associate_hit(surface, o, d, config)
+    return associate_hit(surface, o, d, config, boxes=boxes, K=K, T=T)
 
 
 def fuse(
@@ -117,35 +117,44 @@ def fuse(
         conf = torch.tensor([d.conf for d in kept], dtype=torch.float64, device=dev)
         ny, nx = surface.ny, surface.nx
         acc = accumulate(ny * nx, asc.det, asc.vid, order, cls, conf, config.alpha, config.severity_weights)
-        p, pc = probability(acc, config.prob)
+        # Probabilities on the observed vertices only; every other vertex has P = 0 (tanh form).
+        obs_t = acc.seen if acc.seen is not None else torch.nonzero(acc.n > 0).squeeze(1)
+        p_obs, pc_obs = probability(Accumulators(acc.counts[obs_t], acc.sev[obs_t], acc.conf[obs_t]), config.prob)
         steps.update()
 
+    V = ny * nx
     valid = surface.valid.reshape(-1).cpu().numpy()
     counts = acc.counts.cpu().numpy()
-    nobs = counts.sum(1)
     sev = acc.sev.cpu().numpy()
     conf_v = acc.conf.cpu().numpy()
-    p_np = p.cpu().numpy()
-    defect = (nobs >= config.n_min) & valid
+    obs_all = obs_t.cpu().numpy()
+    keep_obs = valid[obs_all]  # associations only pick valid vertices; kept explicit for safety
+    obs = obs_all[keep_obs]
+    p_obs_np = p_obs.cpu().numpy()[keep_obs]
+    pc_obs_np = pc_obs.cpu().numpy()[keep_obs]
+    nobs_obs = counts[obs].sum(1)
+    p_dense = np.zeros(V, dtype=np.float32)
+    if config.prob == "sigmoid":
+        p_dense[valid] = 0.5  # the paper's form: sigma(0) = 0.5 on every unobserved vertex
+    p_dense[obs] = p_obs_np
+    defect = np.zeros(V, dtype=bool)
+    defect[obs] = nobs_obs >= config.n_min
     pair_det = asc.det.cpu().numpy()
     pair_vid = asc.vid.cpu().numpy()
     instances, labels = build_instances(
-        defect.reshape(ny, nx), p_np.reshape(ny, nx), counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
+        defect.reshape(ny, nx), p_dense.reshape(ny, nx), counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
         sev.reshape(ny, nx), conf_v.reshape(ny, nx), pair_det, pair_vid,
         surface.x0, surface.y0, surface.res, min_obs=config.min_instance_obs,
     )
     steps.update()
 
     grid = bev_grid(surface.x0, surface.y0, surface.res, nx, ny, config.splat_res)
-    jj, ii = np.divmod(np.arange(ny * nx), nx)
+    jj, ii = np.divmod(obs, nx)
     xy = np.stack([surface.x0 + ii * surface.res, surface.y0 + jj * surface.res], 1)
-    pv = np.where(valid, p_np, 0.0)
-    values = np.concatenate([pv[None], (pc.cpu().numpy() * valid[:, None]).T], 0)
-    if config.prob == "sigmoid":
-        # The paper's form gives 0.5 to unobserved vertices; splatting only observed ones keeps
-        # the map readable (the erratum the default fixes).
-        values = values * (nobs > 0)[None]
-    maps = splat(values[:, valid], xy[valid], surface.res, grid, config.splat_sigma)
+    # Only observed vertices carry P > 0 (in the sigmoid form the 0.5 floor is left out of the map,
+    # so the map stays readable: the erratum the default fixes).
+    values = np.concatenate([p_obs_np[None], pc_obs_np.T], 0)
+    maps = splat(values, xy, surface.res, grid, config.splat_sigma)
     steps.update()
     steps.close()
 
@@ -155,9 +164,9 @@ def fuse(
     hits = asc.hit.cpu().numpy()
     nvert = np.bincount(pair_det, minlength=n) if n else np.zeros(0, np.int64)
     lab_flat = labels.reshape(-1)
-    inst_of = np.zeros(n, dtype=np.int64)
-    if len(pair_det):
-        np.maximum.at(inst_of, pair_det, lab_flat[pair_vid])
+    inst_of = instance_of_detections(pair_det, lab_flat[pair_vid] if len(pair_vid) else pair_vid, n)
+    if config.centroid == "detections":
+        _centroids_from_detections(instances, inst_of, hits)
     for r in records:
         r.update(mapped=False, distance_m=None, hit_xyz=None, vertices=0, instance=None)
     for k, i in enumerate(kept_idx):
@@ -170,19 +179,55 @@ def fuse(
 
     baseline = baseline_instances(kept, pair_det, pair_vid, surface.x0, surface.y0, surface.res, nx,
                                   severity_weights=config.severity_weights)
-    metrics = paper_metrics(records, defect, valid, nobs, sev, instances, config, fstats)
+    metrics = paper_metrics(records, defect[obs], int(valid.sum()), nobs_obs, sev[obs], instances, config, fstats)
     metrics["seconds"] = {"filter": round(t_filter, 3), "associate": round(t_assoc, 3),
                           "total": round(time.perf_counter() - t0, 3)}
     metrics["surface"] = {"x0": surface.x0, "y0": surface.y0, "res": surface.res, "shape": [ny, nx],
                           "valid_vertices": int(valid.sum())}
     return FusionResult(
         instances=instances, grid=grid, prob_map=maps[0], class_maps=maps[1:],
-        vertex_prob=np.where(valid, p_np, 0.0).reshape(ny, nx).astype(np.float32),
+        vertex_prob=p_dense.reshape(ny, nx),
         detections=records, metrics=metrics, baseline=baseline,
         surface_grid={"x0": surface.x0, "y0": surface.y0, "res": surface.res, "shape": [ny, nx]},
         vertex_counts=counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
-        vertex_severity=sev.reshape(ny, nx).astype(np.float32),
+        vertex_severity=sev.reshape(ny, nx),
     )
+
+
+def instance_of_detections(pair_det: np.ndarray, pair_label: np.ndarray, n: int) -> np.ndarray:
+    """(n,) instance id (0 = none) of each detection: the instance holding most of its vertices."""
+    out = np.zeros(n, dtype=np.int64)
+    m = pair_label > 0
+    if not m.any():
+        return out
+    k = int(pair_label.max()) + 1
+    keys, cnt = np.unique(pair_det[m].astype(np.int64) * k + pair_label[m], return_counts=True)
+    det, lab = np.divmod(keys, k)
+    order = np.lexsort((-cnt, det))  # per detection, the largest count first
+    det, lab = det[order], lab[order]
+    first = np.r_[True, det[1:] != det[:-1]]
+    out[det[first]] = lab[first]
+    return out
+
+
+def _centroids_from_detections(instances: list[DefectInstance], inst_of: np.ndarray, points: np.ndarray) -> None:
+    """Set each instance's centroid to the mean surface point of its detections (where they have one).
+
+    Every detection is one estimate of the defect's centre; their mean shrinks the per-view
+    errors (box jitter, truncation) by sqrt(n), while the vertex union's centroid follows the
+    shape of the overlap of their disks. The vertex centroid stays in ``extra``.
+    """
+    ok = (inst_of > 0) & np.isfinite(points).all(1)
+    if not instances or not ok.any():
+        return
+    k = len(instances) + 1
+    cnt = np.bincount(inst_of[ok], minlength=k)
+    sx = np.bincount(inst_of[ok], points[ok, 0], minlength=k)
+    sy = np.bincount(inst_of[ok], points[ok, 1], minlength=k)
+    for inst in instances:
+        inst.extra["vertex_centroid"] = [round(c, 3) for c in inst.centroid]
+        if cnt[inst.id] > 0:
+            inst.centroid = (float(sx[inst.id] / cnt[inst.id]), float(sy[inst.id] / cnt[inst.id]))
 
 
 def baseline_instances(kept: list[Detection], pair_det: np.ndarray, pair_vid: np.ndarray, x0: float, y0: float,
@@ -226,13 +271,14 @@ def baseline_instances(kept: list[Detection], pair_det: np.ndarray, pair_vid: np
     return out
 
 
-def paper_metrics(records: list[dict], defect: np.ndarray, valid: np.ndarray, nobs: np.ndarray, sev: np.ndarray,
+def paper_metrics(records: list[dict], defect: np.ndarray, n_valid: int, nobs: np.ndarray, sev: np.ndarray,
                   instances: list[DefectInstance], config: FusionConfig, fstats: dict) -> dict:
     """SPEC §4 statistics plus the bad-input counts.
 
     total = detections passing sanitising and the confidence threshold (what the paper's detector
     outputs); filtered = removed by the road filter; FR = filtered / total; ORP = 1 - FR;
     valid = kept; MSR = mapped / valid; coverage = defect vertices / valid vertices.
+    ``defect``, ``nobs``, ``sev`` are given on the observed vertices only; ``n_valid`` counts all valid ones.
     """
     reasons = Counter(r["reason"] for r in records)
     invalid = {k: reasons.get(k, 0) for k in INVALID_REASONS if reasons.get(k, 0)}
@@ -254,7 +300,7 @@ def paper_metrics(records: list[dict], defect: np.ndarray, valid: np.ndarray, no
         "filter_rate": fr,
         "on_road_precision": 1.0 - fr if total else 0.0,
         "msr": len(mapped) / len(kept) if kept else 0.0,
-        "coverage": nd / max(int(valid.sum()), 1),
+        "coverage": nd / max(n_valid, 1),
         "defect_vertices": nd,
         "obs_per_vertex": float(nobs[defect].mean()) if nd else 0.0,
         "mean_severity": float(sev[defect].mean()) if nd else 0.0,

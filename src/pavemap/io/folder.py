@@ -95,7 +95,7 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
-def quat_to_R(q: np.ndarray) -> np.ndarray:
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
     """(N, 4) quaternions w, x, y, z (normalised here) → (N, 3, 3) rotation matrices."""
     q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
@@ -188,7 +188,7 @@ def read_poses_csv(path: str | os.PathLike) -> list[PoseRow]:
                 v = np.array([float(r[c]) for c in _QUAT])
                 if not np.isfinite(v).all() or np.linalg.norm(v[3:]) < 1e-9:
                     raise ValueError("non-finite values or zero quaternion")
-                T = make_pose(quat_to_R(v[3:])[0], v[:3])
+                T = make_pose(quat_to_rot(v[3:])[0], v[:3])
             else:
                 names = _M16 if kind == "m16" else _M12
                 m = np.array([float(r[c]) for c in names]).reshape(-1, 4)
@@ -289,7 +289,8 @@ def import_folder(
             if (w, h) != (c.width, c.height):
                 raise SequenceError(src, f"image is {w}x{h}, cameras.json says {cam} is {c.width}x{c.height}")
             rel = f"images/{cam}/{r.frame:06d}{src.suffix.lower()}"
-            f = frames.setdefault(r.frame, Frame(r.frame, r.timestamp if r.timestamp is not None else float(r.frame), {}))
+            ts = r.timestamp if r.timestamp is not None else float(r.frame)
+            f = frames.setdefault(r.frame, Frame(r.frame, ts, {}))
             if cam in f.views:
                 raise SequenceError(poses_file, f"frame {r.frame} camera {cam!r} appears twice")
             f.views[cam] = View(cam, rel, r.T)

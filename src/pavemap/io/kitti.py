@@ -50,7 +50,7 @@ class KittiCalib:
     P: dict[int, np.ndarray]  # camera index -> (3, 4) float64 projection of rectified camera
     Tr: np.ndarray | None  # (4, 4) float64 velodyne -> cam0, None when absent
 
-    def K(self, cam: int) -> np.ndarray:
+    def intrinsics(self, cam: int) -> np.ndarray:
         return self.P[cam][:, :3].copy()
 
     def t_cam0_to_cam(self, cam: int) -> np.ndarray:
@@ -223,7 +223,7 @@ def import_kitti(
     if idx.size == 0:
         raise PavemapError(f"no frames in --start {start} --stop {stop} (sequence has {len(images)})")
     t_cam = calib.t_cam0_to_cam(camera)
-    K = calib.K(camera)
+    K = calib.intrinsics(camera)
     w, h = image_size(images[0])
     name = f"cam{camera}"
     cam = Camera(name, w, h, K)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
-from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, make_pose, quat_to_R
+from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, make_pose, quat_to_rot
 from pavemap.io.sequence import SequenceError, check_intrinsics, write_sequence
 from pavemap.types import Camera, Frame, GeoOrigin, SemanticClass, Sequence, View
 
@@ -36,7 +36,7 @@ REFERENCE_COORDINATES = {
 
 def _pose(record: dict) -> np.ndarray:
     """nuScenes translation + rotation (w, x, y, z) → (4, 4) float64."""
-    return make_pose(quat_to_R(np.asarray(record["rotation"], dtype=np.float64))[0],
+    return make_pose(quat_to_rot(np.asarray(record["rotation"], dtype=np.float64))[0],
                      np.asarray(record["translation"], dtype=np.float64))
 
 

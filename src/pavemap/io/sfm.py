@@ -84,7 +84,7 @@ def _road_candidates(P: np.ndarray, C: np.ndarray, R_wc: np.ndarray, K: np.ndarr
 
 def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, workdir: str | os.PathLike | None = None,
               overlap: int = 10, num_threads: int = 2, max_features: int = 8192, min_registered: float = 0.6,
-              seed: int = 0, peak_threshold: float = 0.003) -> SfmResult:
+              seed: int = 0, peak_threshold: float = 0.003, verbose: bool = False) -> SfmResult:
     """Metric z-up camera-to-world poses (N, 4, 4) for ``images`` (video order) of one ``camera``."""
     try:
         import pycolmap
@@ -95,6 +95,9 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     if camera_height <= 0:
         raise PavemapError(f"camera height must be positive metres, got {camera_height}")
     images = [Path(p) for p in images]
+    # COLMAP logs every step at INFO to stderr; keep warnings, report progress ourselves
+    old_level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING) if verbose is False else 0
     folders = {p.parent.resolve() for p in images}
     own_tmp = workdir is None
     work = Path(tempfile.mkdtemp(prefix="pavemap-sfm-")) if own_tmp else Path(workdir)
@@ -125,8 +128,14 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         # road surfaces are low-contrast: a lower peak threshold keeps their (few) features
         extraction.sift.peak_threshold = peak_threshold
         extraction.use_gpu = False
+        from tqdm import tqdm
+
+        stages = tqdm(total=4, desc="sfm", unit="stage", disable=None)
+        stages.set_postfix_str("features")
         pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        stages.update(1)
+        stages.set_postfix_str("matching")
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = overlap
         pairing.quadratic_overlap = True
@@ -134,6 +143,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         matching.num_threads = num_threads
         matching.use_gpu = False
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+        stages.update(1)
+        stages.set_postfix_str("mapping")
         opts = pycolmap.IncrementalPipelineOptions()
         opts.num_threads = num_threads
         opts.ba_refine_focal_length = False  # intrinsics are known; keeps the metric K
@@ -142,6 +153,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         opts.random_seed = seed
         opts.multiple_models = False
         models = pycolmap.incremental_mapping(db, image_dir, work / "sparse", options=opts)
+        stages.update(1)
+        stages.set_postfix_str("scale")
         if not models:
             raise PavemapError(
                 f"SfM failed: no reconstruction from {len(images)} images (too little texture or motion?)"
@@ -211,8 +224,11 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
             "road_points_under_path": int(drive_over.sum()),
             "height_spread": spread,  # median |h - median h| / median h of those points
         }
+        stages.update(1)
+        stages.close()
         log.info("SfM: %s", info)
         return SfmResult(out, registered, float(s), int(drive_over.sum()), pts, info)
     finally:
+        pycolmap.logging.minloglevel = old_level
         if own_tmp:
             shutil.rmtree(work, ignore_errors=True)

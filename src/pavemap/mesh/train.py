@@ -202,6 +202,34 @@ def height_rmse(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.
     return float(torch.sqrt((err ** 2).mean())), int(inside.sum())
 
 
+def forward_rays(model: RoadMeshModel, cache: torch.Tensor, bounds, o: torch.Tensor, d: torch.Tensor,
+                 max_dist: float):
+    """Differentiable render of rays for one training step.
+
+    Triangles are found on the cached heights ``cache`` (ny*nx,) float32 with its ``bounds``; the height
+    MLP then runs only on the hit triangles' vertices, and one exact Newton step per ray carries the
+    gradient. Returns None when nothing is hit, else rows (M,) of hit rays, tri (M, 3) compact vertex
+    ids, bary (M, 3), lam (M,) depth, rgb (M, 3), sem (M, C) and the triangles' heights (M, 3), whose
+    edges the Laplacian term uses (a sample of the mesh edges E, weighted by how often views see them).
+    """
+    g = model.grid
+    hf_cache = HeightField(g.x0, g.y0, g.res, cache.reshape(g.ny, g.nx), model.valid_t)
+    cells = find_hits(hf_cache, o, d, max_dist, bounds=bounds)
+    if cells.idx.numel() == 0:
+        return None
+    tri = model.flat_to_compact[cells.vertex_ids(g.nx)]
+    need, inv = torch.unique(tri.reshape(-1), return_inverse=True)
+    h_need = model.heights(need)
+    heights = cache.index_copy(0, model.vertex_flat_ids[need], h_need.float()).reshape(g.ny, g.nx)
+    hit = hits_to_rayhit(HeightField(g.x0, g.y0, g.res, heights, model.valid_t), o, d, cells)
+    rows = cells.idx
+    bary = hit.bary[rows]
+    # sparse row gradients: only the vertices hit in this step are touched by the (lazy) optimizer
+    rgb = (bary[..., None] * F.embedding(tri, model.rgb, sparse=True)).sum(1)
+    sem = (bary[..., None] * F.embedding(tri, model.sem, sparse=True)).sum(1) if model.sem.shape[1] else None
+    return rows, tri, bary, hit.lam[rows], rgb, sem, h_need[inv].reshape(-1, 3)
+
+
 def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool = True
                 ) -> tuple[RoadMesh, dict]:
     """Stage 1 on a sequence: returns the mesh and its metrics; writes outputs to ``out_dir`` when given.
@@ -339,7 +367,6 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                unit="step", dynamic_ncols=True)
     bad = 0
     gy = grid
-    flat_ids = model.vertex_flat_ids
     for epoch in range(start_epoch, cfg.epochs):
         t_ep = time.perf_counter()
         perm = torch.randperm(len(pool), generator=gen)[:n_epoch].to(device)
@@ -356,21 +383,11 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 continue
             T = corrected_poses(pool.T, delta)
             o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
-            cells = find_hits(hf_cache, o, d, cfg.max_dist, bounds=bounds)
-            if cells.idx.numel() == 0:
+            fw = forward_rays(model, cache, bounds, o, d, cfg.max_dist)
+            if fw is None:
                 bar.update(1)
                 continue
-            tri = model.flat_to_compact[cells.vertex_ids(gy.nx)]  # (M, 3) compact ids
-            # The MLP runs only on the hit triangles' vertices; the Laplacian term uses those triangles'
-            # edges (a sample of the mesh edges E, weighted by how often the views see them).
-            need, inv = torch.unique(tri.reshape(-1), return_inverse=True)
-            h_need = model.heights(need)
-            heights = cache.index_copy(0, flat_ids[need], h_need.float()).reshape(gy.ny, gy.nx)
-            hf = HeightField(gy.x0, gy.y0, gy.res, heights, model.valid_t)
-            hit = hits_to_rayhit(hf, o, d, cells)
-            rows = cells.idx
-            bary = hit.bary[rows]
-            rgb = (bary[..., None] * F.embedding(tri, model.rgb, sparse=True)).sum(1)
+            rows, tri, bary, lam, rgb, sem_all, ht = fw
             gt = pool.rgb[b][rows].float() / 255.0
             l_rgb = (rgb - gt).abs().mean()
             loss = cfg.w_rgb * l_rgb
@@ -379,17 +396,15 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 ch = pool.channel[b][rows]
                 lab = ch >= 0
                 if lab.any():
-                    sem = (bary[lab][..., None] * F.embedding(tri[lab], model.sem, sparse=True)).sum(1)
-                    l_sem = F.cross_entropy(sem, ch[lab])
+                    l_sem = F.cross_entropy(sem_all[lab], ch[lab])
                     loss = loss + cfg.w_sem * l_sem
             l_depth = torch.zeros((), device=device)
             if depth_on:
                 dg = pool.depth[b][rows]
                 m = dg > 0
                 if m.any():
-                    l_depth = (hit.lam[rows][m] - dg[m]).abs().mean()
+                    l_depth = (lam[m] - dg[m]).abs().mean()
                     loss = loss + cfg.w_depth * l_depth
-            ht = h_need[inv].reshape(-1, 3)
             l_smooth = ((ht - ht.roll(1, dims=1)) ** 2).mean()
             loss = loss + cfg.w_smooth * l_smooth
             if not torch.isfinite(loss):
@@ -464,6 +479,10 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         "eval_pixels_per_second": len(epool) / max(ev_s, 1e-9),
         "history": history, "warnings": notes, "config": cfg.to_dict(),
     }
+    if delta is not None:
+        with torch.no_grad():
+            Tr = corrected_poses(pool.T, delta).double().cpu().numpy()
+        metrics["refined_poses"] = {f"{k.frame}/{k.camera}": Tr[i].tolist() for i, k in enumerate(pool.keys)}
     if seq.root is not None and (Path(seq.root) / "truth" / "height.npy").is_file():
         truth = HeightField.from_truth(seq.root)
         rmse, n = height_rmse(mesh.surface.heights, mesh.surface.valid, mesh.surface.grid_xy(), truth)

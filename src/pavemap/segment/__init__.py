@@ -94,7 +94,9 @@ def attach_label_folder(
         raw = load_semantics(src)
         c = seq.cameras[cam]
         if raw.shape != (c.height, c.width):
-            raise SequenceError(src, f"label map is {raw.shape[1]}x{raw.shape[0]}, camera {cam} is {c.width}x{c.height}")
+            raise SequenceError(
+                src, f"label map is {raw.shape[1]}x{raw.shape[0]}, camera {cam} is {c.width}x{c.height}"
+            )
         out = lm.remap(raw)
         bad = np.setdiff1d(np.unique(out), list(valid))
         if bad.size:

@@ -125,7 +125,9 @@ def _vistas_target(name: str) -> str:
         return "curb"
     if name in ("construction--flat--sidewalk", "construction--flat--pedestrian-area"):
         return "sidewalk"
-    if name.startswith(("human--", "object--vehicle--", "animal--")) or name in ("void--car-mount", "void--ego-vehicle"):
+    if name.startswith(("human--", "object--vehicle--", "animal--")) or name in (
+        "void--car-mount", "void--ego-vehicle",
+    ):
         return "movable"  # also masks the ego vehicle's bonnet and mount
     if name == "nature--sky":
         return "sky"

@@ -81,6 +81,14 @@ def _ground_g(tw: dict, o: torch.Tensor, dx, dy, dz, lam):
     return o[2] + lam * dz - bilinear_t(tw["height"], tw["hgrid"], x, y)
 
 
+def _ground_g_nearest(tw: dict, o: torch.Tensor, dx, dy, dz, lam):
+    """g(λ) with the nearest height sample: a quarter of the gathers, only used to find the bracket."""
+    x_min, y_min, res, ny, nx = tw["hgrid"]
+    i = ((o[0] + lam * dx - x_min) / res).round().clamp(0, nx - 1).int()
+    j = ((o[1] + lam * dy - y_min) / res).round().clamp(0, ny - 1).int()
+    return o[2] + lam * dz - tw["height"].index_select(0, j * nx + i)
+
+
 def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz,
                      ground_ref: tuple[float, float, float], limit: torch.Tensor | None = None) -> torch.Tensor:
     """(N,) camera depth of the first ground hit of each ray, +inf where none within FAR_M.
@@ -118,7 +126,7 @@ def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz,
     # a ray already below the surface at the top of the slab (relief bound exceeded): take lam_top
     first = torch.where(g_top <= 0, torch.zeros_like(lam_top), torch.full_like(lam_top, MARCH_STEPS + 1.0))
     for i in range(MARCH_STEPS, 0, -1):  # backwards: the last write is the first crossing
-        g = _ground_g(tw, o, dx_, dy_, dz_, lam_top + step * i)
+        g = _ground_g_nearest(tw, o, dx_, dy_, dz_, lam_top + step * i)
         first = torch.where((g <= 0) & (first > 0), torch.full_like(first, float(i)), first)
     found = ok & (first <= MARCH_STEPS)
     res = torch.full_like(lam_top, float("inf"))
@@ -131,6 +139,15 @@ def intersect_ground(world: World, tw: dict, o_np: np.ndarray, dx, dy, dz,
         lo = hi - step[sel]
         glo = _ground_g(tw, o, sdx, sdy, sdz, lo)
         ghi = _ground_g(tw, o, sdx, sdy, sdz, hi)
+        # the bracket came from nearest samples: where the exact surface disagrees, widen it by a step
+        bad = torch.nonzero(glo <= 0).squeeze(1)
+        if bad.numel():
+            lo[bad] = (lo[bad] - step[sel][bad]).clamp(min=0.0)
+            glo[bad] = _ground_g(tw, o, sdx[bad], sdy[bad], sdz[bad], lo[bad])
+        bad = torch.nonzero(ghi > 0).squeeze(1)
+        if bad.numel():
+            hi[bad] = hi[bad] + step[sel][bad]
+            ghi[bad] = _ground_g(tw, o, sdx[bad], sdy[bad], sdz[bad], hi[bad])
         side = torch.zeros_like(lo)
         for _ in range(REFINE_STEPS):  # Illinois regula falsi: bracket kept, converges superlinearly
             lam = (lo * ghi - hi * glo) / (ghi - glo)
@@ -454,8 +471,14 @@ def _object_shade(tw: dict, kind: torch.Tensor, colour: torch.Tensor, local: tor
     streak = wall & ((sn - 0.5).abs() < 0.018) & (axis != 2)
     col = torch.where(streak[:, None], col * 0.35, col)
     # car: dark glass on the cabin sides, bumper line
-    cabin_side = (kind == k["car_cabin"]) & (axis != 2) & (v > 0.08 * 2 * hsz[:, 2])
+    # car: dark glass on the cabin sides between a sill and the roof edge, body-coloured roof and pillars
+    h2 = 2 * hsz[:, 2]
+    pillar = (u.abs() > 0.9 * torch.where(axis == 0, hsz[:, 1], hsz[:, 0]))
+    cabin_side = (kind == k["car_cabin"]) & (axis != 2) & (v > 0.1 * h2) & (v < 0.85 * h2) & ~pillar
     col = torch.where(cabin_side[:, None], torch.tensor([0.1, 0.12, 0.15], device=col.device) + 0.0 * col, col)
+    # body: darker bumper band at the bottom
+    bumper = (kind == k["car_body"]) & (axis != 2) & (v < 0.25 * 2 * hsz[:, 2])
+    col = torch.where(bumper[:, None], col * 0.55, col)
     return col
 
 

@@ -819,8 +819,7 @@ def _make_clutter(w: World, rng: np.random.Generator):
             col = CAR_COLOURS[rng.integers(len(CAR_COLOURS))] * rng.uniform(0.9, 1.05)
             yaw_e = rng.normal(0, 0.03) + (math.pi if rng.random() < 0.5 else 0.0)
             z = box(s, tc, length, width, 0.3, 0.95, col, VEHICLE, "car_body", yaw_e)
-            box(s, tc, length * 0.6, width * 0.9, 0.95, height, col * 0.5 + 0.03, VEHICLE, "car_cabin", yaw_e,
-                base=z)
+            box(s, tc, length * 0.55, width * 0.88, 0.95, height, col, VEHICLE, "car_cabin", yaw_e, base=z)
             for ax_off in (-0.32, 0.32):
                 xy = w.xy_of_st(np.array([s + ax_off * length * math.cos(yaw_e)]), np.array([tc]))[0]
                 zz = float(w.height_at(xy[:1], xy[1:])[0])
