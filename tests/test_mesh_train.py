@@ -20,7 +20,7 @@ from pavemap.mesh.model import HeightMLP, build_grid, positional_encoding
 
 
 def _cfg(**kw) -> MeshConfig:
-    base = dict(resolution=0.1, crop_m=4.0, epochs=3, render_scale=1.0, eval_scale=1.0, pixels_per_step=1024,
+    base = dict(resolution=0.1, crop_m=4.0, epochs=3, render_scale=1.0, eval_scale=1.0, pixels_per_step=512,
                 holdout_every=3, device="cpu", threads=1, resume=False)
     base.update(kw)
     return MeshConfig(**base)

@@ -162,11 +162,12 @@ def fuse(
     mapped = asc.mapped.cpu().numpy()
     dist = asc.distance.cpu().numpy()
     hits = asc.hit.cpu().numpy()
+    ground_px = ground_pixel_size(seq, kept, hits)
     nvert = np.bincount(pair_det, minlength=n) if n else np.zeros(0, np.int64)
     lab_flat = labels.reshape(-1)
     inst_of = instance_of_detections(pair_det, lab_flat[pair_vid] if len(pair_vid) else pair_vid, n)
     if config.centroid == "detections":
-        _centroids_from_detections(instances, inst_of, hits)
+        _centroids_from_detections(instances, inst_of, hits, ground_px)
     for r in records:
         r.update(mapped=False, distance_m=None, hit_xyz=None, vertices=0, instance=None)
     for k, i in enumerate(kept_idx):
@@ -175,6 +176,7 @@ def fuse(
         rec["distance_m"] = None if not math.isfinite(dist[k]) else round(float(dist[k]), 4)
         rec["hit_xyz"] = None if not np.all(np.isfinite(hits[k])) else [round(float(v), 3) for v in hits[k]]
         rec["vertices"] = int(nvert[k])
+        rec["ground_px_m"] = None if not np.isfinite(ground_px[k]) else round(float(ground_px[k]), 4)
         rec["instance"] = int(inst_of[k]) if inst_of[k] > 0 else None
 
     baseline = baseline_instances(kept, pair_det, pair_vid, surface.x0, surface.y0, surface.res, nx,
@@ -210,20 +212,41 @@ def instance_of_detections(pair_det: np.ndarray, pair_label: np.ndarray, n: int)
     return out
 
 
-def _centroids_from_detections(instances: list[DefectInstance], inst_of: np.ndarray, points: np.ndarray) -> None:
-    """Set each instance's centroid to the mean surface point of its detections (where they have one).
+def ground_pixel_size(seq: Sequence, dets: list[Detection], points: np.ndarray) -> np.ndarray:
+    """(N,) metres of road one image row spans at each detection's surface point (nan without one).
 
-    Every detection is one estimate of the defect's centre; their mean shrinks the per-view
-    errors (box jitter, truncation) by sqrt(n), while the vertex union's centroid follows the
-    shape of the overlap of their disks. The vertex centroid stays in ``extra``.
+    ``(range / f) / sin(grazing angle)``: a far, grazing view localises a box edge to metres,
+    a near one to centimetres.
     """
-    ok = (inst_of > 0) & np.isfinite(points).all(1)
+    if not dets:
+        return np.zeros(0)
+    frames = seq.frame_by_index()
+    o = np.array([frames[d.frame].views[d.camera].T_world_cam[:3, 3] for d in dets])
+    f = np.array([seq.cameras[d.camera].K[1, 1] for d in dets])
+    v = points - o
+    rng = np.linalg.norm(v, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sin_g = np.abs(v[:, 2]) / rng
+        return (rng / f) / np.maximum(sin_g, 0.02)
+
+
+def _centroids_from_detections(instances: list[DefectInstance], inst_of: np.ndarray, points: np.ndarray,
+                               ground_px: np.ndarray) -> None:
+    """Set each instance's centroid to the weighted mean surface point of its detections.
+
+    Every detection is one estimate of the defect's centre, with an error that grows with the
+    road length one pixel spans there (``ground_px``): weights ``1 / ground_px^2`` (inverse
+    variance) let near views dominate far, grazing ones. The vertex union's centroid follows the
+    shape of the overlap of the detections' disks instead; it stays in ``extra``.
+    """
+    ok = (inst_of > 0) & np.isfinite(points).all(1) & np.isfinite(ground_px) & (ground_px > 0)
     if not instances or not ok.any():
         return
     k = len(instances) + 1
-    cnt = np.bincount(inst_of[ok], minlength=k)
-    sx = np.bincount(inst_of[ok], points[ok, 0], minlength=k)
-    sy = np.bincount(inst_of[ok], points[ok, 1], minlength=k)
+    w = 1.0 / ground_px[ok] ** 2
+    cnt = np.bincount(inst_of[ok], w, minlength=k)
+    sx = np.bincount(inst_of[ok], w * points[ok, 0], minlength=k)
+    sy = np.bincount(inst_of[ok], w * points[ok, 1], minlength=k)
     for inst in instances:
         inst.extra["vertex_centroid"] = [round(c, 3) for c in inst.centroid]
         if cnt[inst.id] > 0:
