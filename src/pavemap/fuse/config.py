@@ -39,7 +39,7 @@ class FusionConfig:
     alpha: float = 0.3
     beta0: float = 2.5
     beta1: float = 0.0
-    hit_radius_m: float = 0.3
+    hit_radius_m: float = 0.5
     hit_point: str = "footprint"  # hit mode: "centre" ray hit or the box "footprint" centroid
     footprint_grid: int = 4
     footprint_max_m: float = 6.0
@@ -48,6 +48,7 @@ class FusionConfig:
     centroid: str = "detections"  # instance centre: mean of its detections' surface points, or "vertices"
     n_min: int = 2
     min_instance_obs: int = 2
+    merge_gap_m: float = 0.0  # defect-vertex pieces closer than this form one instance
     splat_res: float = 0.1
     splat_sigma: float = 0.15
     severity_weights: tuple[float, ...] = (0.3, 0.4, 0.7, 1.0)
@@ -80,6 +81,8 @@ class FusionConfig:
         for name in ("hit_radius_m", "splat_res", "max_dist_m", "mesh_mask_scale", "footprint_max_m"):
             if not getattr(self, name) > 0:
                 raise PavemapError(f"fusion.{name} must be positive, got {getattr(self, name)}")
+        if self.merge_gap_m < 0:
+            raise PavemapError(f"fusion.merge_gap_m must be >= 0, got {self.merge_gap_m}")
         if self.splat_sigma < 0 or self.beta0 < 0 or self.beta1 < 0:
             raise PavemapError("fusion.splat_sigma, beta0 and beta1 must be >= 0")
         if self.n_min < 1 or self.footprint_grid < 1 or self.min_instance_obs < 1:

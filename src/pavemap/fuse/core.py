@@ -144,7 +144,7 @@ def fuse(
     instances, labels = build_instances(
         defect.reshape(ny, nx), p_dense.reshape(ny, nx), counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
         sev.reshape(ny, nx), conf_v.reshape(ny, nx), pair_det, pair_vid,
-        surface.x0, surface.y0, surface.res, min_obs=config.min_instance_obs,
+        surface.x0, surface.y0, surface.res, min_obs=config.min_instance_obs, merge_gap_m=config.merge_gap_m,
     )
     steps.update()
 

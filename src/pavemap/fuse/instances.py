@@ -28,10 +28,26 @@ def priority(p: float) -> str:
     return "no action"
 
 
-def label_components(mask: np.ndarray) -> tuple[np.ndarray, int]:
-    """(ny, nx) bool -> (labels (ny, nx) int32, 0 = background, 1..K 8-connected components; K)."""
-    labels, k = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
-    return labels.astype(np.int32), int(k)
+def label_components(mask: np.ndarray, gap_cells: int = 0) -> tuple[np.ndarray, int]:
+    """(ny, nx) bool -> (labels (ny, nx) int32, 0 = background, 1..K 8-connected components; K).
+
+    With ``gap_cells`` > 0, pieces closer than about ``2 * gap_cells`` cells are one component
+    (labelled on the mask dilated by ``gap_cells``, then restricted to the mask's own vertices):
+    the views of one long crack can land as separate blobs on an imperfect surface.
+    """
+    st = np.ones((3, 3), dtype=bool)
+    if gap_cells <= 0:
+        labels, k = ndimage.label(mask, structure=st)
+        return labels.astype(np.int32), int(k)
+    grown = ndimage.binary_dilation(mask, structure=st, iterations=gap_cells)
+    labels, _ = ndimage.label(grown, structure=st)
+    labels = np.where(mask, labels, 0)
+    # Dense ids 1..K over the labels that kept a vertex.
+    ids = np.unique(labels)
+    ids = ids[ids > 0]
+    lut = np.zeros(int(labels.max()) + 1, dtype=np.int32)
+    lut[ids] = np.arange(1, len(ids) + 1, dtype=np.int32)
+    return lut[labels], len(ids)
 
 
 def component_polygons(labels: np.ndarray, k: int, x0: float, y0: float, res: float) -> list:
@@ -71,16 +87,18 @@ def principal_extent(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: i
 def build_instances(
     defect: np.ndarray, prob: np.ndarray, counts: np.ndarray, sev: np.ndarray, conf: np.ndarray,
     pair_det: np.ndarray, pair_vid: np.ndarray, x0: float, y0: float, res: float, min_obs: int = 1,
+    merge_gap_m: float = 0.0,
 ) -> tuple[list[DefectInstance], np.ndarray]:
     """Instances from the defect-vertex mask.
 
     defect (ny, nx) bool; prob, sev, conf (ny, nx); counts (ny, nx, 4); pair_det / pair_vid (P,)
     the (detection, vertex) associations (for the distinct-detection count ``observations``).
-    Components seen by fewer than ``min_obs`` distinct detections are dropped.
+    Components seen by fewer than ``min_obs`` distinct detections are dropped; pieces within
+    ``merge_gap_m`` of each other form one instance (a MultiPolygon when they do not touch).
     Returns the instances (ids 1..K in order) and the (ny, nx) int32 label image of the kept ones.
     """
     ny, nx = defect.shape
-    labels, k = label_components(defect)
+    labels, k = label_components(defect, int(round(merge_gap_m / (2 * res))))
     if k == 0:
         return [], labels
     lab = labels.reshape(-1)

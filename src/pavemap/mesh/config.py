@@ -14,7 +14,9 @@ class MeshConfig:
     """Everything stage 1 needs; the defaults are the SPEC's (paper / RoMe) values.
 
     Speed knobs (ours, not the paper's): training renders at ``render_scale`` of the image size and
-    samples ``pixels_per_step`` pixels per optimizer step from all training views; one epoch visits
+    samples ``pixels_per_step`` pixels per optimizer step from all training views, of which the first
+    ``height_pixels_per_step`` also train the height MLP (the MLP runs only on their triangles'
+    vertices, the others use the heights cached at the last refresh); one epoch visits
     ``pixel_fraction`` of all usable pixels at that scale once.
     """
 
@@ -34,7 +36,8 @@ class MeshConfig:
     w_smooth: float = 1.0
     render_scale: float = 0.25  # training image scale
     eval_scale: float = 0.25  # held-out evaluation image scale
-    pixels_per_step: int = 16384
+    pixels_per_step: int = 65536  # pixels rendered per step (colour / semantic / depth losses)
+    height_pixels_per_step: int = 8192  # of which these also train the height MLP (its cost per step)
     pixel_fraction: float = 1.0
     frame_stride: int = 1
     holdout_every: int = 10  # every k-th frame is held out for metrics (0: none)
@@ -75,7 +78,8 @@ class MeshConfig:
         for name in ("epochs", "holdout_every", "pe_levels"):
             if getattr(self, name) < 0:
                 raise PavemapError(f"mesh config: {name} must be >= 0, got {getattr(self, name)}")
-        if self.frame_stride < 1 or self.pixels_per_step < 1 or self.hidden < 1:
-            raise PavemapError("mesh config: frame_stride, pixels_per_step and hidden must be >= 1")
+        if min(self.frame_stride, self.pixels_per_step, self.height_pixels_per_step, self.hidden) < 1:
+            raise PavemapError("mesh config: frame_stride, pixels_per_step, height_pixels_per_step and hidden "
+                               "must be >= 1")
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise PavemapError(f"mesh config: device must be auto, cpu or cuda, got {self.device!r}")

@@ -1,9 +1,10 @@
 """The BEV grid, its trajectory crop, and the learnable vertex attributes (SPEC §1).
 
-Height ``z_i = z_base + MLP1([Phi(p_i); MLP0(Phi(p_i))])`` with ``p_i`` the vertex x, y normalised to
-[-1, 1]^2 over the grid. ``z_base`` is a fixed offset (the initial road plane) so that the MLP, which
-starts near 0, only learns the road's relief; it is part of the model, so the outputs carry no hidden
-offset. RGB (init N(0, 0.01)) and semantic logits (init 0) are per-vertex tensors over the kept
+Height ``z_i = b_i + MLP1([Phi(p_i); MLP0(Phi(p_i))])`` with ``p_i`` the vertex x, y normalised to
+[-1, 1]^2 over the grid. ``b_i`` is a fixed initial surface (the ground under the trajectory: camera
+heights minus the mount height, interpolated between frames) so that the MLP, which starts at 0, only
+learns the relief relative to it (a drive can climb metres); it is part of the model, so the outputs
+carry no hidden offset. RGB (init N(0, 0.01)) and semantic logits (init 0) are per-vertex tensors over the kept
 (valid) vertices only, in the compact order of ``torch.nonzero(valid.reshape(-1))``.
 """
 
@@ -73,6 +74,20 @@ def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float) -> Grid:
     return Grid(float(lo[0]), float(lo[1]), float(res), nx, ny, valid)
 
 
+def ground_under_trajectory(grid: Grid, traj_xy: np.ndarray, ground_z: np.ndarray, k: int = 4) -> np.ndarray:
+    """(Nv,) float32 initial heights of the kept vertices: inverse-distance weighting of the ground
+    heights ``ground_z`` (F,) under the trajectory points ``traj_xy`` (F, 2), k nearest."""
+    from scipy.spatial import cKDTree
+
+    vid = np.flatnonzero(grid.valid.reshape(-1))
+    xy = np.stack([grid.x0 + (vid % grid.nx) * grid.res, grid.y0 + (vid // grid.nx) * grid.res], 1)
+    k = min(k, len(traj_xy))
+    dist, idx = cKDTree(traj_xy).query(xy, k=k)
+    dist, idx = dist.reshape(len(xy), k), idx.reshape(len(xy), k)
+    w = 1.0 / np.maximum(dist, 0.5) ** 2
+    return ((w * ground_z[idx]).sum(1) / w.sum(1)).astype(np.float32)
+
+
 def positional_encoding(p: torch.Tensor, levels: int) -> torch.Tensor:
     """Phi(p) = [p, sin(2^0 pi p), cos(2^0 pi p), ..., sin(2^(L-1) pi p), cos(2^(L-1) pi p)]: (N, 2) -> (N, 4L+2)."""
     out = [p]
@@ -111,7 +126,8 @@ class HeightMLP(nn.Module):
 class RoadMeshModel(nn.Module):
     """Learnable stage-1 parameters over a Grid: height MLP, per-vertex RGB and semantic logits."""
 
-    def __init__(self, grid: Grid, num_classes: int, levels: int, hidden: int = 128, z_base: float = 0.0,
+    def __init__(self, grid: Grid, num_classes: int, levels: int, hidden: int = 128,
+                 z_base: float | np.ndarray = 0.0,
                  generator: torch.Generator | None = None):
         super().__init__()
         self.grid = grid
@@ -127,7 +143,8 @@ class RoadMeshModel(nn.Module):
         sy = max((grid.ny - 1) * grid.res, 1e-9)
         p = torch.stack([2.0 * i.double() * grid.res / sx - 1.0, 2.0 * j.double() * grid.res / sy - 1.0], 1)
         self.register_buffer("p_norm", p.float())
-        self.register_buffer("z_base", torch.tensor(float(z_base)))
+        base = np.broadcast_to(np.asarray(z_base, dtype=np.float32), (vid.numel(),)).copy()
+        self.register_buffer("z_base", torch.from_numpy(base))  # (Nv,) initial surface per kept vertex
         self.height_mlp = HeightMLP(levels, hidden)
         self.rgb = nn.Parameter(0.01 * torch.randn(vid.numel(), 3, generator=generator))
         self.sem = nn.Parameter(torch.zeros(vid.numel(), num_classes))
@@ -139,9 +156,10 @@ class RoadMeshModel(nn.Module):
     def heights(self, compact_ids: torch.Tensor | None = None, chunk: int = 65536) -> torch.Tensor:
         """Heights (M,) of compact vertices ``compact_ids`` (all when None), world z."""
         p = self.p_norm if compact_ids is None else self.p_norm[compact_ids]
+        b = self.z_base if compact_ids is None else self.z_base[compact_ids]
         if p.shape[0] <= chunk or torch.is_grad_enabled():
-            return self.height_mlp(p) + self.z_base
-        return torch.cat([self.height_mlp(p[s:s + chunk]) for s in range(0, p.shape[0], chunk)]) + self.z_base
+            return self.height_mlp(p) + b
+        return torch.cat([self.height_mlp(p[s:s + chunk]) for s in range(0, p.shape[0], chunk)]) + b
 
     def dense(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
         """Compact per-vertex values (Nv, ...) -> dense (ny, nx, ...) with ``fill`` off the crop."""

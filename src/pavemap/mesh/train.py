@@ -24,7 +24,7 @@ from pavemap.errors import PavemapError
 from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, surface_bounds
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
-from pavemap.mesh.model import RoadMesh, RoadMeshModel, build_grid
+from pavemap.mesh.model import RoadMesh, RoadMeshModel, build_grid, ground_under_trajectory
 from pavemap.mesh.render import view_rays
 from pavemap.types import Sequence
 
@@ -63,12 +63,14 @@ def corrected_poses(T0: torch.Tensor, delta: torch.Tensor | None) -> torch.Tenso
     return torch.cat([top, bottom], dim=1)
 
 
-def _plane_search(pool: PixelPool, z0: float, res: float, n_max: int = 60000, seed: int = 0) -> float:
-    """Initial road height: the plane z0 + delta where the views agree best on colour (min per-cell variance).
+def _plane_search(pool: PixelPool, cam_height: float, res: float, n_max: int = 60000, seed: int = 0) -> float:
+    """Camera mount height: the offset below each camera at which the views agree best on colour
+    (min per-cell colour variance of road pixels cast onto the local plane under their camera).
 
-    Coarse-to-fine over +-1 m (0.1 m steps, then 0.02 m). Without it the MLP must learn a global
-    offset of tens of cm at lr 1e-3, which costs epochs.
+    Coarse-to-fine over +-1 m around ``cam_height`` (0.1 m steps, then 0.02 m). Without it the MLP
+    must learn a global offset of tens of cm at lr 1e-3, which costs epochs.
     """
+    z0 = cam_height
     g = torch.Generator().manual_seed(seed)
     sel = pool.road.nonzero().squeeze(1).cpu()
     if sel.numel() < 100:
@@ -81,8 +83,8 @@ def _plane_search(pool: PixelPool, z0: float, res: float, n_max: int = 60000, se
     down = d[:, 2] < -1e-6
     dz_safe = torch.where(down, d[:, 2], torch.ones_like(d[:, 2]))
 
-    def score(z: float) -> float:
-        lam = (z - o[:, 2]) / dz_safe
+    def score(hcam: float) -> float:
+        lam = -hcam / dz_safe  # plane hcam below the camera
         ok = down & (lam > 0) & (lam < 40)
         if ok.sum() < 100:
             return math.inf
@@ -105,7 +107,7 @@ def _plane_search(pool: PixelPool, z0: float, res: float, n_max: int = 60000, se
 
     best_z = z0
     for span, steps in ((1.0, 21), (0.1, 11)):
-        cands = [best_z + float(t) for t in np.linspace(-span, span, steps)]
+        cands = [best_z + float(t) for t in np.linspace(-span, span, steps) if best_z + float(t) > 0.05]
         scores = [score(z) for z in cands]
         k = int(np.argmin(scores))
         if math.isfinite(scores[k]):
@@ -203,14 +205,17 @@ def height_rmse(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.
 
 
 def forward_rays(model: RoadMeshModel, cache: torch.Tensor, bounds, o: torch.Tensor, d: torch.Tensor,
-                 max_dist: float):
+                 max_dist: float, height_rays: int | None = None):
     """Differentiable render of rays for one training step.
 
     Triangles are found on the cached heights ``cache`` (ny*nx,) float32 with its ``bounds``; the height
     MLP then runs only on the hit triangles' vertices, and one exact Newton step per ray carries the
-    gradient. Returns None when nothing is hit, else rows (M,) of hit rays, tri (M, 3) compact vertex
-    ids, bary (M, 3), lam (M,) depth, rgb (M, 3), sem (M, C) and the triangles' heights (M, 3), whose
-    edges the Laplacian term uses (a sample of the mesh edges E, weighted by how often views see them).
+    gradient. With ``height_rays`` only the triangles of the first ``height_rays`` rays get fresh MLP
+    heights (and height gradients); the others render on the cached heights and train colours and
+    logits only (cheap: no MLP). Returns None when nothing is hit, else rows (M,) of hit rays, tri (M, 3)
+    compact vertex ids, bary (M, 3), lam (M,) depth, rgb (M, 3), sem (M, C) and the fresh triangles'
+    heights (K, 3), whose edges the Laplacian term uses (a sample of the mesh edges E, weighted by how
+    often views see them).
     """
     g = model.grid
     hf_cache = HeightField(g.x0, g.y0, g.res, cache.reshape(g.ny, g.nx), model.valid_t)
@@ -218,7 +223,8 @@ def forward_rays(model: RoadMeshModel, cache: torch.Tensor, bounds, o: torch.Ten
     if cells.idx.numel() == 0:
         return None
     tri = model.flat_to_compact[cells.vertex_ids(g.nx)]
-    need, inv = torch.unique(tri.reshape(-1), return_inverse=True)
+    fresh = tri if height_rays is None else tri[cells.idx < height_rays]
+    need, inv = torch.unique(fresh.reshape(-1), return_inverse=True)
     h_need = model.heights(need)
     heights = cache.index_copy(0, model.vertex_flat_ids[need], h_need.float()).reshape(g.ny, g.nx)
     hit = hits_to_rayhit(HeightField(g.x0, g.y0, g.res, heights, model.valid_t), o, d, cells)
@@ -296,15 +302,16 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     if use_sem and int((epool.channel >= 0).sum()) == 0:
         warn("held-out views carry no labelled pixels: semantic accuracy is undefined")
 
-    cam_z = float(np.median(traj[:, 2]))
-    z0 = cam_z - cfg.camera_height
+    cam_h = cfg.camera_height
     if cfg.init_height_search:
-        z0 = _plane_search(pool, z0, cfg.resolution, seed=cfg.seed)
+        cam_h = _plane_search(pool, cam_h, cfg.resolution, seed=cfg.seed)
+    z_vertices = ground_under_trajectory(grid, traj[:, :2], traj[:, 2] - cam_h)
+    z0 = float(np.median(z_vertices))  # fill value off the crop (never used as surface)
 
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
         gen = torch.Generator().manual_seed(cfg.seed)
-        model = RoadMeshModel(grid, len(class_ids), cfg.pe_levels, cfg.hidden, z0, generator=gen)
+        model = RoadMeshModel(grid, len(class_ids), cfg.pe_levels, cfg.hidden, z_vertices, generator=gen)
     model.to(device)
 
     delta = None
@@ -383,7 +390,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 continue
             T = corrected_poses(pool.T, delta)
             o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
-            fw = forward_rays(model, cache, bounds, o, d, cfg.max_dist)
+            fw = forward_rays(model, cache, bounds, o, d, cfg.max_dist, height_rays=cfg.height_pixels_per_step)
             if fw is None:
                 bar.update(1)
                 continue
@@ -475,7 +482,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         "coverage": ev["coverage"],
         "vertices": grid.vertices, "faces": grid.faces, "grid": grid.as_dict(),
         "device": str(device), "epochs": cfg.epochs, "steps_per_epoch": steps_per_epoch,
-        "pixels_per_epoch": n_epoch, "z_init": z0,
+        "pixels_per_epoch": n_epoch, "camera_height_init": cam_h,
         "eval_pixels_per_second": len(epool) / max(ev_s, 1e-9),
         "history": history, "warnings": notes, "config": cfg.to_dict(),
     }

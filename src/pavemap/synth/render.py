@@ -42,7 +42,7 @@ from pavemap.types import Camera
 SHADOW_BIT = 1 << 14
 FAR_M = 220.0  # horizontal distance beyond which the ground is not rendered (haze → sky colour)
 MARCH_STEPS = 7
-REFINE_STEPS = 5
+REFINE_STEPS = 6
 HORIZON = torch.tensor([0.80, 0.85, 0.9])
 ZENITH = torch.tensor([0.40, 0.58, 0.84])
 
