@@ -71,6 +71,10 @@ def register(app: typer.Typer) -> None:
         if not (seq_dir / "sequence.json").is_file():
             typer.echo(f"synthesising a nuScenes-like scene ({DEMO_FRAMES} frames x 6 cameras, scale {DEMO_SCALE})")
             synthesize(seq_dir, preset="nuscenes-like", seed=seed, frames=DEMO_FRAMES, scale=DEMO_SCALE)
+        from pavemap.synth import contact_sheet
+
+        sheet = contact_sheet(seq_dir, out / "contact_sheet.png", n_frames=3)
+        typer.echo(f"contact sheet of the scene: {sheet}")
         cfg = load_config("nuscenes")
         cfg.device = device
         cfg.detector.seed = seed

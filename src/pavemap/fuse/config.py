@@ -30,6 +30,10 @@ class FusionConfig:
     - ``n_min``: a vertex is a defect vertex when observed at least this often.
     - ``splat_res`` / ``splat_sigma``: BEV map cell size and Gaussian σ in metres.
     - ``min_instance_obs``: drop instances seen by fewer distinct detections (outlier guard).
+    - ``merge_gap_m``: defect-vertex pieces closer than this form one instance (views of one
+      long crack land as separate blobs on an imperfect surface).
+    - ``centroid``: instance centre = inverse-variance weighted mean of its detections' surface
+      points (``detections``; weight 1/(road metres per pixel)^2) or the vertex mean (``vertices``).
     """
 
     tau_conf: float = 0.05
@@ -48,7 +52,7 @@ class FusionConfig:
     centroid: str = "detections"  # instance centre: mean of its detections' surface points, or "vertices"
     n_min: int = 2
     min_instance_obs: int = 2
-    merge_gap_m: float = 0.0  # defect-vertex pieces closer than this form one instance
+    merge_gap_m: float = 0.4  # defect-vertex pieces closer than this form one instance
     splat_res: float = 0.1
     splat_sigma: float = 0.15
     severity_weights: tuple[float, ...] = (0.3, 0.4, 0.7, 1.0)

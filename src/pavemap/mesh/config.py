@@ -33,6 +33,8 @@ class MeshConfig:
     w_rgb: float = 1.0
     w_sem: float = 0.5
     w_depth: float = 1.0  # lambda_depth, used only where depth maps exist
+    depth_outlier_m: float = 0.5  # depth residuals above max(this, rel * depth) are ignored (not road)
+    depth_outlier_rel: float = 0.05
     w_smooth: float = 1.0
     render_scale: float = 0.25  # training image scale
     eval_scale: float = 0.25  # held-out evaluation image scale

@@ -408,7 +408,10 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
             l_depth = torch.zeros((), device=device)
             if depth_on:
                 dg = pool.depth[b][rows]
-                m = dg > 0
+                # A height field cannot stand up into a wall: a pixel whose measured depth is far from
+                # the surface's (a facade, a pole) is an outlier, not a reason to bend the road.
+                gate = torch.clamp(cfg.depth_outlier_rel * dg, min=cfg.depth_outlier_m)
+                m = (dg > 0) & ((lam.detach() - dg).abs() < gate)
                 if m.any():
                     l_depth = (lam[m] - dg[m]).abs().mean()
                     loss = loss + cfg.w_depth * l_depth

@@ -202,6 +202,10 @@ def _write_truth(world: World, root: Path) -> None:
             props["band_m"] = d["band_m"]
         if d["cls"] == 3:
             props["depth_m"] = round(float(d["depth_m"]), 4)
+        if d.get("grown"):
+            props["grown_in_survey"] = int(world.params.survey)
+        if d.get("new_in_survey"):
+            props["new_in_survey"] = int(d["new_in_survey"])
         ring = [[round(float(x), 4), round(float(y), 4)] for x, y in np.asarray(poly.exterior.coords)]
         feats.append({"type": "Feature", "properties": props, "geometry": {"type": "Polygon", "coordinates": [ring]}})
     fc = {"type": "FeatureCollection", "name": "defects_truth",

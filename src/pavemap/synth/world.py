@@ -110,6 +110,12 @@ class WorldParams:
     defect_density: float = 25.0  # per 100 m of road
     class_mix: tuple[float, float, float, float] = (0.35, 0.25, 0.2, 0.2)  # D00, D10, D20, D40
     defect_size: float = 1.0  # scale on all defect sizes
+    # repeat surveys of the same road: survey k > 0 keeps every defect of survey 0, enlarges a
+    # share of them and adds new ones (for testing change detection between surveys)
+    survey: int = 0
+    survey_new_per_100m: float = 6.0
+    survey_grow_share: float = 0.4
+    survey_growth: float = 1.6  # linear scale on grown defects (area grows by its square)
     # clutter and lighting
     clutter: float = 1.0  # scale on clutter density (0 = none)
     decoy_density: float = 8.0  # off-road crack-like streaks per 100 m
@@ -632,69 +638,111 @@ def _crack_polyline(w: World, rng: np.random.Generator, s0: float, t0: float, le
 
 def _make_defects(w: World, rng: np.random.Generator) -> list[dict]:
     p = w.params
-    w2 = p.width / 2
     s_lo, s_hi = 3.0, p.road_length - 3.0
     n = int(rng.poisson(p.defect_density * (s_hi - s_lo) / 100.0))
     mix = np.asarray(p.class_mix, float)
     mix = mix / mix.sum()
     placed: list[tuple[float, float, float, float]] = []  # (s0, s1, t0, t1) boxes, to avoid overlaps
     out: list[dict] = []
-    sz = p.defect_size
     for _ in range(n):
         cls = int(rng.choice(4, p=mix))
-        for _try in range(30):
-            sc = rng.uniform(s_lo, s_hi)
-            if cls == 0:
-                length = rng.uniform(1.0, 4.0) * sz
-                ext_s, ext_t = length, 0.3
-            elif cls == 1:
-                length = min(rng.uniform(1.0, 3.5) * sz, p.width - 1.0)
-                ext_s, ext_t = 0.8, length
-            elif cls == 2:
-                ax, ay = rng.uniform(0.5, 1.25) * sz, rng.uniform(0.4, 1.0) * sz
-                ext_s, ext_t = 2.6 * ax, 2.6 * ay
-            else:
-                rad = rng.uniform(0.15, 0.75) * sz
-                ax, ay = rad * rng.uniform(1.0, 1.3), rad
-                ext_s, ext_t = 2.6 * ax, 2.6 * ax
-            half_t = w2 - 0.35 - ext_t / 2
-            if half_t <= 0:
-                continue
-            tc = rng.uniform(-half_t, half_t)
-            box = (sc - ext_s / 2 - 0.3, sc + ext_s / 2 + 0.3, tc - ext_t / 2 - 0.3, tc + ext_t / 2 + 0.3)
-            if any(b[0] < box[1] and box[0] < b[1] and b[2] < box[3] and box[2] < b[3] for b in placed):
-                continue
-            placed.append(box)
-            did = len(out)
-            if cls in (0, 1):
-                if cls == 0:
-                    line = _crack_polyline(w, rng, sc - length / 2, tc, length, along=True)
-                else:
-                    line = _crack_polyline(w, rng, sc, tc - length / 2, length, along=False)
-                d = {"id": did, "cls": cls, "kind": "line", "line": line, "width_m": rng.uniform(0.012, 0.03),
-                     "band_m": 0.10, "length_m": float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum()),
-                     "darkness": rng.uniform(0.55, 0.8)}
-                d["centre"] = line[len(line) // 2].tolist()
-                d["aabb"] = [*(line.min(0) - d["band_m"]), *(line.max(0) + d["band_m"])]
-            else:
-                centre = w.xy_of_st(np.array([sc]), np.array([tc]))[0]
-                rot = float(w.heading_at(np.array([sc]))[0]) + rng.uniform(-0.35, 0.35)
-                d = {"id": did, "cls": cls, "kind": "blob", "centre": centre.tolist(), "ax": ax, "ay": ay,
-                     "rot": rot, "harm": [rng.uniform(0, 0.12), rng.uniform(0, 0.08)],
-                     "phase": [rng.uniform(0, 6.283), rng.uniform(0, 6.283)],
-                     "darkness": rng.uniform(0.5, 0.8)}
-                if cls == 2:
-                    d["cell_m"] = rng.uniform(0.14, 0.28)
-                    d["width_m"] = rng.uniform(0.01, 0.022)
-                else:
-                    d["depth_m"] = rng.uniform(0.03, 0.10)
-                poly = blob_polygon(d)
-                d["aabb"] = [*(poly.min(0) - 0.02), *(poly.max(0) + 0.02)]
-                d["length_m"] = float(np.ptp(poly @ [math.cos(rot), math.sin(rot)]))
-            d["s_range"] = [box[0], box[1]]
-            out.append(d)
-            break
+        _place_defect(w, rng, cls, placed, out, s_lo, s_hi)
+    if p.survey > 0:
+        _later_survey(w, out, placed, s_lo, s_hi)
     return out
+
+
+def _later_survey(w: World, out: list[dict], placed: list, s_lo: float, s_hi: float) -> None:
+    """Survey k of the same road: grow a share of the existing defects, add new ones (own random stream)."""
+    p = w.params
+    rng = np.random.default_rng([int(p.seed), 1000 + int(p.survey)])
+    g = p.survey_growth
+    for d in out:
+        if rng.random() >= p.survey_grow_share:
+            continue
+        d["grown"] = True
+        if d["kind"] == "blob":
+            d["ax"] *= g
+            d["ay"] *= g
+            if "depth_m" in d:
+                d["depth_m"] = min(d["depth_m"] * 1.3, 0.12)
+            poly = blob_polygon(d)
+            d["aabb"] = [*(poly.min(0) - 0.02), *(poly.max(0) + 0.02)]
+            d["length_m"] = float(np.ptp(poly @ [math.cos(d["rot"]), math.sin(d["rot"])]))
+        else:  # a crack grows longer about its middle
+            line = np.asarray(d["line"], dtype=float)
+            mid = line.mean(0)
+            line = mid + (line - mid) * g
+            d["line"] = line.tolist() if isinstance(d["line"], list) else line
+            d["length_m"] = float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum())
+            d["aabb"] = [*(line.min(0) - d["band_m"]), *(line.max(0) + d["band_m"])]
+    mix = np.asarray(p.class_mix, float)
+    mix = mix / mix.sum()
+    n_new = int(rng.poisson(p.survey_new_per_100m * (s_hi - s_lo) / 100.0))
+    for _ in range(n_new):
+        before = len(out)
+        _place_defect(w, rng, int(rng.choice(4, p=mix)), placed, out, s_lo, s_hi)
+        if len(out) > before:
+            out[-1]["new_in_survey"] = int(p.survey)
+
+
+def _place_defect(w: World, rng: np.random.Generator, cls: int, placed: list, out: list[dict],
+                  s_lo: float, s_hi: float) -> None:
+    p = w.params
+    w2 = p.width / 2
+    sz = p.defect_size
+    for _try in range(30):
+        sc = rng.uniform(s_lo, s_hi)
+        if cls == 0:
+            length = rng.uniform(1.0, 4.0) * sz
+            ext_s, ext_t = length, 0.3
+        elif cls == 1:
+            length = min(rng.uniform(1.0, 3.5) * sz, p.width - 1.0)
+            ext_s, ext_t = 0.8, length
+        elif cls == 2:
+            ax, ay = rng.uniform(0.5, 1.25) * sz, rng.uniform(0.4, 1.0) * sz
+            ext_s, ext_t = 2.6 * ax, 2.6 * ay
+        else:
+            rad = rng.uniform(0.15, 0.75) * sz
+            ax, ay = rad * rng.uniform(1.0, 1.3), rad
+            ext_s, ext_t = 2.6 * ax, 2.6 * ax
+        half_t = w2 - 0.35 - ext_t / 2
+        if half_t <= 0:
+            continue
+        tc = rng.uniform(-half_t, half_t)
+        box = (sc - ext_s / 2 - 0.3, sc + ext_s / 2 + 0.3, tc - ext_t / 2 - 0.3, tc + ext_t / 2 + 0.3)
+        if any(b[0] < box[1] and box[0] < b[1] and b[2] < box[3] and box[2] < b[3] for b in placed):
+            continue
+        placed.append(box)
+        did = len(out)
+        if cls in (0, 1):
+            if cls == 0:
+                line = _crack_polyline(w, rng, sc - length / 2, tc, length, along=True)
+            else:
+                line = _crack_polyline(w, rng, sc, tc - length / 2, length, along=False)
+            d = {"id": did, "cls": cls, "kind": "line", "line": line, "width_m": rng.uniform(0.012, 0.03),
+                 "band_m": 0.10, "length_m": float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum()),
+                 "darkness": rng.uniform(0.55, 0.8)}
+            d["centre"] = line[len(line) // 2].tolist()
+            d["aabb"] = [*(line.min(0) - d["band_m"]), *(line.max(0) + d["band_m"])]
+        else:
+            centre = w.xy_of_st(np.array([sc]), np.array([tc]))[0]
+            rot = float(w.heading_at(np.array([sc]))[0]) + rng.uniform(-0.35, 0.35)
+            d = {"id": did, "cls": cls, "kind": "blob", "centre": centre.tolist(), "ax": ax, "ay": ay,
+                 "rot": rot, "harm": [rng.uniform(0, 0.12), rng.uniform(0, 0.08)],
+                 "phase": [rng.uniform(0, 6.283), rng.uniform(0, 6.283)],
+                 "darkness": rng.uniform(0.5, 0.8)}
+            if cls == 2:
+                d["cell_m"] = rng.uniform(0.14, 0.28)
+                d["width_m"] = rng.uniform(0.01, 0.022)
+            else:
+                d["depth_m"] = rng.uniform(0.03, 0.10)
+            poly = blob_polygon(d)
+            d["aabb"] = [*(poly.min(0) - 0.02), *(poly.max(0) + 0.02)]
+            d["length_m"] = float(np.ptp(poly @ [math.cos(rot), math.sin(rot)]))
+        d["s_range"] = [box[0], box[1]]
+        out.append(d)
+        break
 
 
 def _make_decoys(w: World, rng: np.random.Generator) -> list[dict]:
