@@ -255,3 +255,21 @@ def test_footprint_centre_removes_centre_ray_bias(plane: HeightField) -> None:
         errs[hp] = math.dist(res.detections[0]["hit_xyz"][:2], (8.0, 0.0))
     # The box's ground trapezoid is wider at its far end than the patch, so some bias is left.
     assert errs["centre"] > 0.2 and errs["footprint"] < errs["centre"] / 2, errs
+
+
+def test_mesh_mask_from_surface_semantics(plane: HeightField) -> None:
+    """Mesh road mask sampled by rays: a box over a non-road strip of the mesh is filtered."""
+    from types import SimpleNamespace
+
+    seq = make_seq(1)
+    logits = torch.zeros((plane.ny, plane.nx, 2))
+    logits[..., 0] = 1.0  # road (class 0) everywhere ...
+    ys = plane.y0 + plane.res * torch.arange(plane.ny)
+    logits[ys < -2.0, :, 1] = 5.0  # ... except y < -2 m: sidewalk (class 1)
+    mesh = SimpleNamespace(surface=plane, sem_logits=logits, class_ids=[0, 1])
+    on = Detection(0, "front", box_of(seq, 0, (9.0, 0.5)), 0, 0.9)
+    off = Detection(0, "front", box_of(seq, 0, (9.0, -3.5)), 0, 0.9)
+    res = fuse(seq, [on, off], plane, FusionConfig(mask="mesh", n_min=1, min_instance_obs=1), mesh=mesh,
+               progress=False)
+    assert [r["reason"] for r in res.detections] == ["kept", "off_road"]
+    assert res.detections[0]["r_road"] == 1.0 and res.detections[1]["r_road"] == 0.0

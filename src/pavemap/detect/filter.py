@@ -119,6 +119,44 @@ def _warn_invalid(detections: list[Detection], reasons: list[str]) -> None:
                 ", ".join(f"{k} {v}" for k, v in sorted(counts.items())), first)
 
 
+def mesh_box_ratio(mesh: object, K: np.ndarray, T_world_cam: np.ndarray, boxes: np.ndarray, road_lut: np.ndarray,
+                   grid: int = 8) -> np.ndarray:
+    """Road share of each box (N, 4) as the mesh sees it, from a grid x grid of rays per box.
+
+    K (3, 3) or (N, 3, 3), T_world_cam (4, 4) or (N, 4, 4): one view, or each box's own view
+    (all views in one batch: one surface cast for the whole sequence).
+
+    Each ray is cast onto the mesh surface; its hit is road when the mesh's interpolated
+    semantic logits argmax to a road class; a miss is not road (as an unrendered pixel).
+    Sampling only the boxes' pixels costs N * grid^2 rays instead of rendering whole views
+    (measured ~100x faster than ``render_view`` per view on the bench scene).
+    """
+    import torch
+
+    from pavemap.fuse.associate import rays_through
+    from pavemap.geometry import intersect_rays
+
+    surface = mesh.surface  # type: ignore[attr-defined]
+    dev = surface.heights.device
+    b = torch.as_tensor(np.asarray(boxes, dtype=np.float64).reshape(-1, 4), device=dev)
+    n = b.shape[0]
+    g = (torch.arange(grid, dtype=torch.float64, device=dev) + 0.5) / grid
+    gu, gv = torch.meshgrid(g, g, indexing="xy")
+    u = (b[:, 0:1] + gu.reshape(1, -1) * (b[:, 2:3] - b[:, 0:1])).reshape(-1)
+    v = (b[:, 1:2] + gv.reshape(1, -1) * (b[:, 3:4] - b[:, 1:2])).reshape(-1)
+    per = grid * grid
+    Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), device=dev).reshape(-1, 3, 3).expand(n, 3, 3)
+    Tt = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64), device=dev).reshape(-1, 4, 4).expand(n, 4, 4)
+    Kt, Tt = Kt.repeat_interleave(per, 0), Tt.repeat_interleave(per, 0)
+    with torch.no_grad():
+        o, d = rays_through(Kt, Tt, torch.stack([u, v], 1))
+        hit = intersect_rays(surface, o, d)
+        logits = hit.interpolate(mesh.sem_logits.detach().double())  # type: ignore[attr-defined]
+        ids = torch.as_tensor(mesh.class_ids, dtype=torch.long, device=dev)[logits.argmax(1)]  # type: ignore[attr-defined]
+    road = torch.as_tensor(road_lut, device=dev)[ids.clamp(0, 255)] & hit.hit
+    return road.reshape(n, grid * grid).double().mean(1).cpu().numpy()
+
+
 class _MaskSource:
     """Road masks per view from the frame semantics and/or the mesh, with fallbacks and warnings."""
 
@@ -127,6 +165,9 @@ class _MaskSource:
         self.mesh = mesh
         self.mode = config.mask
         self.scale = config.mesh_mask_scale
+        self.grid = config.mesh_mask_grid
+        self.precomputed: dict[int, float] = {}  # detection index -> mesh road share
+        self.current: list[int] = []  # detection indices of the view being asked about
         self.road_lut = seq.class_lut("road")
         self.frames = seq.frame_by_index()
         self.fallbacks: Counter[str] = Counter()
@@ -148,7 +189,13 @@ class _MaskSource:
         # The mesh mask is used in mesh / both modes, and as the fallback of a view without semantics.
         want_mesh = self.mode in ("mesh", "both") or r_frame is None
         if want_mesh and self.mesh is not None:
-            r_mesh = box_ratio(self._mesh_mask(view, camera), boxes, self.scale)
+            if self.current and all(i in self.precomputed for i in self.current):
+                r_mesh = np.array([self.precomputed[i] for i in self.current])
+            elif hasattr(self.mesh, "surface") and hasattr(self.mesh, "sem_logits"):
+                r_mesh = mesh_box_ratio(self.mesh, self.seq.cameras[camera].K, view.T_world_cam, boxes,
+                                        self.road_lut, self.grid)
+            else:
+                r_mesh = box_ratio(self._mesh_mask(view, camera), boxes, self.scale)
         if r_frame is not None and r_mesh is not None:
             return np.minimum(r_frame, r_mesh)
         if r_frame is not None:
@@ -194,7 +241,17 @@ def filter_detections(
             assert c is not None
             by_view.setdefault((c.frame, c.camera), []).append(i)
     masks = _MaskSource(seq, config, mesh)
+    if masks.mode in ("mesh", "both") and mesh is not None and hasattr(mesh, "surface") and by_view:
+        # The mesh ratios of all views in one batch of rays (per-view casts pay a fixed cost each).
+        idx_all = [i for idx in by_view.values() for i in idx]
+        fr = seq.frame_by_index()
+        Ks = np.array([seq.cameras[clean[i].camera].K for i in idx_all])  # type: ignore[union-attr]
+        Ts = np.array([fr[clean[i].frame].views[clean[i].camera].T_world_cam for i in idx_all])  # type: ignore[union-attr]
+        boxes_all = np.array([clean[i].box for i in idx_all], dtype=np.float64)  # type: ignore[union-attr]
+        r_all = mesh_box_ratio(mesh, Ks, Ts, boxes_all, masks.road_lut, config.mesh_mask_grid)
+        masks.precomputed = dict(zip(idx_all, r_all.tolist(), strict=True))
     for (frame, camera), idx in by_view.items():
+        masks.current = idx
         boxes = np.array([clean[i].box for i in idx], dtype=np.float64)  # type: ignore[union-attr]
         r_road[idx] = masks.ratios(frame, camera, boxes)
     if masks.fallbacks.get("no_semantics"):

@@ -43,7 +43,7 @@ class FusionConfig:
     alpha: float = 0.3
     beta0: float = 2.5
     beta1: float = 0.0
-    hit_radius_m: float = 0.5
+    hit_radius_m: float = 0.3
     hit_point: str = "footprint"  # hit mode: "centre" ray hit or the box "footprint" centroid
     footprint_grid: int = 4
     footprint_max_m: float = 6.0
@@ -56,7 +56,8 @@ class FusionConfig:
     splat_res: float = 0.1
     splat_sigma: float = 0.15
     severity_weights: tuple[float, ...] = (0.3, 0.4, 0.7, 1.0)
-    mesh_mask_scale: float = 0.25
+    mesh_mask_scale: float = 0.25  # render scale when the mesh mask comes from render_view
+    mesh_mask_grid: int = 8  # rays per box side when the mesh mask is sampled from the mesh surface
     device: str = "auto"  # auto = the surface's device
 
     def __post_init__(self) -> None:
@@ -89,7 +90,7 @@ class FusionConfig:
             raise PavemapError(f"fusion.merge_gap_m must be >= 0, got {self.merge_gap_m}")
         if self.splat_sigma < 0 or self.beta0 < 0 or self.beta1 < 0:
             raise PavemapError("fusion.splat_sigma, beta0 and beta1 must be >= 0")
-        if self.n_min < 1 or self.footprint_grid < 1 or self.min_instance_obs < 1:
+        if self.n_min < 1 or self.footprint_grid < 1 or self.min_instance_obs < 1 or self.mesh_mask_grid < 1:
             raise PavemapError("fusion.n_min, footprint_grid and min_instance_obs must be >= 1")
 
     @classmethod

@@ -75,6 +75,14 @@ def _plane_search(pool: PixelPool, cam_height: float, res: float, n_max: int = 6
     sel = pool.road.nonzero().squeeze(1).cpu()
     if sel.numel() < 100:
         return z0
+    if pool.depth is not None:
+        # Measured depth gives the height of road points below their camera directly.
+        dsel = sel[(pool.depth[sel.to(pool.view.device)] > 0).cpu()]
+        if dsel.numel() >= 100:
+            dsel = dsel[torch.randperm(dsel.numel(), generator=g)[:n_max]].to(pool.view.device)
+            _, d = view_rays(pool.Kinv, pool.T, pool.view[dsel], pool.uv[dsel])
+            below = -(pool.depth[dsel] * d[:, 2])
+            return float(below.median())
     sel = sel[torch.randperm(sel.numel(), generator=g)[:n_max]].to(pool.view.device)
     o, d = view_rays(pool.Kinv, pool.T, pool.view[sel], pool.uv[sel])
     o, d = o.double().cpu(), d.double().cpu()
@@ -116,8 +124,7 @@ def _plane_search(pool: PixelPool, cam_height: float, res: float, n_max: int = 6
 
 
 class MultiOptimizer:
-    """Dense Adam (MLP, poses) and sparse Adam (vertex colours, logits) stepped together; the
-    learning rates of all groups follow one decay factor from their base values."""
+    """Dense Adam (MLP, poses) and sparse Adam (vertex colours, logits) stepped together."""
 
     def __init__(self, *opts: torch.optim.Optimizer):
         self.opts = opts
@@ -131,10 +138,13 @@ class MultiOptimizer:
         for o in self.opts:
             o.step()
 
-    def set_lr_factor(self, f: float) -> None:
+    def set_lr_factor(self, f: float, names: tuple[str, ...] = ("rgb", "sem")) -> None:
+        """Scale the groups ``names`` (per-vertex attributes: their L1 / Adam steps jitter around the
+        optimum unless the rate decays); the height MLP and poses keep their rates."""
         for o, base in zip(self.opts, self.base, strict=True):
             for g, b in zip(o.param_groups, base, strict=True):
-                g["lr"] = b * f
+                if g.get("name") in names:
+                    g["lr"] = b * f
 
     def state_dict(self) -> dict:
         return {"opts": [o.state_dict() for o in self.opts]}
