@@ -29,7 +29,7 @@ class MeshConfig:
     lr_sem: float = 0.1
     lr_height: float = 0.001
     lr_pose: float = 0.001
-    lr_decay_final: float = 0.1  # rgb/sem learning rates decay exponentially to this fraction by the end
+    lr_decay_final: float = 0.1  # learning rates decay exponentially to this fraction by the last step
     w_rgb: float = 1.0
     w_sem: float = 0.5
     w_depth: float = 1.0  # lambda_depth, used only where depth maps exist
@@ -38,7 +38,7 @@ class MeshConfig:
     w_smooth: float = 1.0
     render_scale: float = 0.25  # training image scale
     eval_scale: float = 0.25  # held-out evaluation image scale
-    pixels_per_step: int = 32768  # pixels rendered per step (colour / semantic / depth losses)
+    pixels_per_step: int = 65536  # pixels rendered per step (colour / semantic / depth losses)
     height_pixels_per_step: int = 8192  # of which these also train the height MLP (its cost per step)
     pixel_fraction: float = 1.0
     frame_stride: int = 1

@@ -138,13 +138,12 @@ class MultiOptimizer:
         for o in self.opts:
             o.step()
 
-    def set_lr_factor(self, f: float, names: tuple[str, ...] = ("rgb", "sem")) -> None:
-        """Scale the groups ``names`` (per-vertex attributes: their L1 / Adam steps jitter around the
-        optimum unless the rate decays); the height MLP and poses keep their rates."""
+    def set_lr_factor(self, f: float) -> None:
+        """Scale every group's rate from its base (per-vertex L1 / Adam steps jitter around the optimum
+        unless the rate decays; decaying the MLP too measured better than keeping it, see README)."""
         for o, base in zip(self.opts, self.base, strict=True):
             for g, b in zip(o.param_groups, base, strict=True):
-                if g.get("name") in names:
-                    g["lr"] = b * f
+                g["lr"] = b * f
 
     def state_dict(self) -> dict:
         return {"opts": [o.state_dict() for o in self.opts]}
