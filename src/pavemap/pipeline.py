@@ -330,20 +330,9 @@ def _run(seq: Sequence, cfg: RunConfig, device: str, out: Path, progress: bool) 
 
 def _export(seq, cfg, out, mesh, mesh_dir, result, metrics) -> dict[str, Path]:  # noqa: ANN001
     from pavemap.export import write_outputs
+    from pavemap.mesh import bev_rasters
 
-    for name in ("mesh.ply", "bev_rgb.png", "bev_semantic.png"):
-        src = mesh_dir / name
-        if src.is_file():
-            dst = out / ("road_mesh.ply" if name == "mesh.ply" else name)
-            shutil.copyfile(src, dst)
-    bev_rgb = (mesh.rgb.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-    from pavemap.export.figures import colour_semantics
-
-    labels = np.asarray(mesh.class_ids)[mesh.sem_logits.detach().argmax(-1).cpu().numpy()]
-    valid = mesh.surface.valid.cpu().numpy()
-    bev_sem = colour_semantics(labels, seq.classes)
-    bev_rgb[~valid] = 0
-    bev_sem[~valid] = 0
+    bev = bev_rasters(mesh, seq.classes)
     s = mesh.surface
     mesh_grid = {"x0": s.x0, "y0": s.y0, "res": s.res, "shape": list(s.heights.shape)}
     return write_outputs(
@@ -352,8 +341,8 @@ def _export(seq, cfg, out, mesh, mesh_dir, result, metrics) -> dict[str, Path]: 
         prob_map=result.prob_map,
         class_maps=result.class_maps,
         grid=result.grid,
-        bev_rgb=bev_rgb,
-        bev_semantic=bev_sem,
+        bev_rgb=bev["rgb"],
+        bev_semantic=bev["semantic_rgb"],
         mesh_grid=mesh_grid,
         geo_origin=seq.geo_origin,
         metrics=metrics,
@@ -361,4 +350,5 @@ def _export(seq, cfg, out, mesh, mesh_dir, result, metrics) -> dict[str, Path]: 
         detections=result.detections,
         seq=seq,
         output=cfg.output,
+        mesh_path=mesh_dir / "mesh.ply",
     )

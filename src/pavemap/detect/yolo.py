@@ -57,10 +57,16 @@ def _import_ultralytics():
         ensure_torchvision()
     try:
         import ultralytics
+        import ultralytics.utils.patches as ul_patches
     except ImportError as e:
         raise PavemapError(
             f"the YOLO backend needs ultralytics: pip install 'pavemap[yolo]' (ultralytics-opencv-headless) ({e})"
         ) from None
+    # ultralytics replaces PIL.Image.open process-wide with a wrapper that, on an unreadable file,
+    # tries to install pi-heif; pavemap reports unreadable images itself, offline: undo it.
+    from PIL import Image
+
+    Image.open = getattr(ul_patches, "_image_open", Image.open)
     # ultralytics logs every prediction at INFO; pavemap reports its own progress
     logging.getLogger("ultralytics").setLevel(logging.WARNING)
     return ultralytics

@@ -23,10 +23,11 @@ from matplotlib.path import Path as MplPath  # noqa: E402
 from pavemap.export.geojson import _polygons  # noqa: E402
 from pavemap.export.geotiff import check_grid  # noqa: E402
 from pavemap.io.atomic import atomic_path  # noqa: E402
+from pavemap.palette import DEFECT_HEX, colour_labels
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance  # noqa: E402
 
 # the paper's Figure 11 colours: D00 green, D10 yellow, D20 orange, D40 red
-CLASS_COLOURS: dict[str, str] = {"D00": "#2ca02c", "D10": "#f5d300", "D20": "#ff7f0e", "D40": "#d62728"}
+CLASS_COLOURS: dict[str, str] = DEFECT_HEX
 PRIORITY_COLOURS: dict[str, str] = {"repair now": "#c0392b", "inspect": "#e67e22", "no action": "#7f8c8d"}
 PRIORITIES = ("repair now", "inspect", "no action")
 # metrics shown first in the statistics panel, when present (paper names, SPEC §4)
@@ -361,37 +362,9 @@ def sweep_from_records(records: list[dict], taus: list[float]) -> list[dict]:
     return rows
 
 
-# Cityscapes-like colours for common class names; other names get a stable hashed colour
-_NAMED = {"road": (128, 64, 128), "lane_marking": (255, 255, 255), "lane marking": (255, 255, 255),
-          "crosswalk": (230, 230, 230), "manhole": (90, 90, 140), "sidewalk": (244, 35, 232),
-          "terrain": (152, 251, 152), "vegetation": (107, 142, 35), "car": (0, 0, 142), "vehicle": (0, 0, 142),
-          "person": (220, 20, 60), "pedestrian": (220, 20, 60), "building": (70, 70, 70), "sky": (70, 130, 180),
-          "curb": (196, 196, 196), "other": (80, 80, 80), "ego": (0, 0, 0)}
-
-
 def colour_semantics(labels: np.ndarray, classes: list) -> np.ndarray:
-    """(ny, nx) int class ids (-1 or unknown = none) -> (ny, nx, 3) uint8 colours (black where none).
-
-    ``classes``: the sequence's SemanticClass table; road-like classes without a known name are purple.
-    """
-    import hashlib
-
-    lab = np.asarray(labels)
-    pal = np.zeros((257, 3), dtype=np.uint8)  # entry 256: no label
-    for c in classes:
-        if not 0 <= int(c.id) <= 255:
-            continue
-        name = str(c.name).lower()
-        if name in _NAMED:
-            col = _NAMED[name]
-        elif getattr(c, "road", False):
-            col = (128, 64, 128)
-        else:
-            h = hashlib.md5(name.encode()).digest()
-            col = (h[0], h[1], h[2])
-        pal[int(c.id)] = col
-    idx = np.where((lab < 0) | (lab > 255), 256, lab).astype(np.int64)
-    return pal[idx]
+    """(ny, nx) int class ids (-1 or unknown = none) -> (ny, nx, 3) uint8 colours (black where none)."""
+    return colour_labels(labels, classes)
 
 
 def select_overlay_frames(detections: list[dict], k: int = 3) -> list[tuple[int, str]]:

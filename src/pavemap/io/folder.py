@@ -35,22 +35,14 @@ from PIL import Image
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_path
 from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, write_sequence
+from pavemap.palette import PAVEMAP_CLASSES
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 #: Label table of a sequence without semantics (same ids as the synthetic world, so a
 #: segmenter or label folder mapped with the "pavemap" preset fits it).
-DEFAULT_CLASSES: list[SemanticClass] = [
-    SemanticClass(0, "road", road=True),
-    SemanticClass(1, "lane_marking", road=True),
-    SemanticClass(2, "curb"),
-    SemanticClass(3, "sidewalk"),
-    SemanticClass(4, "terrain"),
-    SemanticClass(5, "vehicle", movable=True),
-    SemanticClass(6, "building"),
-    SemanticClass(7, "sky", sky=True),
-]
+DEFAULT_CLASSES: list[SemanticClass] = PAVEMAP_CLASSES
 
 
 # ----------------------------------------------------------------------------- shared helpers

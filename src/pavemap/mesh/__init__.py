@@ -6,9 +6,10 @@ load_mesh(out_dir), render_view(mesh, camera, T_world_cam, scale).
 
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.model import Grid, RoadMesh, RoadMeshModel, build_grid
-from pavemap.mesh.outputs import bev_rasters, class_colour, load_mesh, write_outputs
+from pavemap.mesh.outputs import bev_rasters, load_mesh, write_outputs
 from pavemap.mesh.render import render_view
 from pavemap.mesh.train import reconstruct
+from pavemap.palette import class_colour
 
 __all__ = [
     "Grid", "MeshConfig", "RoadMesh", "RoadMeshModel", "bev_rasters", "build_grid", "class_colour",

@@ -30,6 +30,7 @@ class MeshConfig:
     lr_height: float = 0.001
     lr_pose: float = 0.001
     lr_decay_final: float = 0.1  # learning rates decay exponentially to this fraction by the last step
+    lr_height_decay_final: float = 1.0  # the height MLP's own decay target (see MultiOptimizer.set_lr_factor)
     w_rgb: float = 1.0
     w_sem: float = 0.5
     w_depth: float = 1.0  # lambda_depth, used only where depth maps exist
@@ -40,6 +41,7 @@ class MeshConfig:
     eval_scale: float = 0.25  # held-out evaluation image scale
     pixels_per_step: int = 65536  # pixels rendered per step (colour / semantic / depth losses)
     height_pixels_per_step: int = 8192  # of which these also train the height MLP (its cost per step)
+    depth_first: bool = True  # pixels with measured depth go first, i.e. into the height-training rays
     pixel_fraction: float = 1.0
     frame_stride: int = 1
     holdout_every: int = 10  # every k-th frame is held out for metrics (0: none)

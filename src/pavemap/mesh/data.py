@@ -66,6 +66,34 @@ def _resize(a: np.ndarray, size: tuple[int, int], nearest: bool) -> np.ndarray:
     return np.asarray(Image.fromarray(a).resize(size, Image.Resampling.BOX))
 
 
+def _depth_samples(dep: np.ndarray, size: tuple[int, int], scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse depth (H, W) -> per target pixel (h, w) the depth of its source sample nearest to the pixel
+    centre (0 where none) and that sample's exact target coordinates (h, w, 2) float (u, v).
+
+    Picking the one source pixel under each target centre would keep only ~scale^2 of the LiDAR returns,
+    and render them half a source pixel off their ray (a bias of ~0.2 m in depth at 20 m at scale 0.25).
+    Here every target pixel that holds a return keeps one, and its ray goes through the return itself:
+    ``u' = scale (u + 0.5) - 0.5`` (pixel-centre convention of :meth:`Camera.scaled`).
+    """
+    w, h = size
+    ys, xs = np.nonzero(dep > 0)
+    out = np.zeros((h, w), np.float32)
+    uv = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).astype(np.float32)
+    if ys.size == 0:
+        return out, uv
+    ut = scale * (xs + 0.5) - 0.5
+    vt = scale * (ys + 0.5) - 0.5
+    tx = np.clip(np.rint(ut), 0, w - 1).astype(np.int64)
+    ty = np.clip(np.rint(vt), 0, h - 1).astype(np.int64)
+    key = ty * w + tx
+    order = np.lexsort(((ut - tx) ** 2 + (vt - ty) ** 2, key))  # by target pixel, then nearest first
+    first = order[np.unique(key[order], return_index=True)[1]]
+    out[ty[first], tx[first]] = dep[ys[first], xs[first]]
+    uv[ty[first], tx[first], 0] = ut[first]
+    uv[ty[first], tx[first], 1] = vt[first]
+    return out, uv
+
+
 def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, channel_lut: np.ndarray,
                use_semantics: bool, use_depth: bool) -> PixelPool:
     """Load, resize and flatten views. channel_lut (256,) int: class id -> semantic channel (-1 unknown)."""
@@ -85,8 +113,13 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
             keep = np.ones(size[::-1], dtype=bool)
             ch = np.full(size[::-1], -1, dtype=np.int64)
             rd = np.ones(size[::-1], dtype=bool)  # without semantics the mesh footprint is the road
+        uvmap = None
         if use_depth and v.depth:
-            dep = _resize(load_depth(seq.path(v.depth)), size, nearest=True)
+            raw = load_depth(seq.path(v.depth))
+            if raw.shape[1] == size[0] and raw.shape[0] == size[1]:
+                dep = raw
+            else:
+                dep, uvmap = _depth_samples(raw, size, scale)
         else:
             dep = np.zeros(size[::-1], dtype=np.float32)
         yy, xx = np.nonzero(keep)
@@ -94,7 +127,7 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
         Kinv.append(np.linalg.inv(cam.K))
         T.append(v.T_world_cam)
         cols["view"].append(np.full(yy.size, vi, dtype=np.int64))
-        cols["uv"].append(np.stack([xx, yy], 1).astype(np.float32))
+        cols["uv"].append(np.stack([xx, yy], 1).astype(np.float32) if uvmap is None else uvmap[yy, xx])
         cols["rgb"].append(rgb[yy, xx])
         cols["ch"].append(ch[yy, xx].astype(np.int64))
         cols["road"].append(rd[yy, xx])

@@ -7,7 +7,6 @@ flipped so that +y (north when the world is ENU) is up, for people. ``grid.json`
 
 from __future__ import annotations
 
-import hashlib
 import io
 from pathlib import Path
 
@@ -19,24 +18,10 @@ from pavemap.errors import PavemapError
 from pavemap.geometry import HeightField
 from pavemap.io.atomic import atomic_path, atomic_write_bytes, atomic_write_json
 from pavemap.mesh.model import Grid, RoadMesh
+from pavemap.palette import colour_labels
 from pavemap.types import SemanticClass
 
 MESH_FILE = "mesh.npz"
-
-_NAMED_COLOURS = {
-    "road": (128, 64, 128), "lane_marking": (255, 255, 255), "curb": (196, 196, 0), "sidewalk": (244, 35, 232),
-    "terrain": (107, 142, 35), "vegetation": (107, 142, 35), "vehicle": (0, 0, 142), "car": (0, 0, 142),
-    "building": (70, 70, 70), "sky": (70, 130, 180), "person": (220, 20, 60), "crosswalk": (200, 200, 255),
-}
-
-
-def class_colour(c: SemanticClass) -> tuple[int, int, int]:
-    """A stable colour per class name (Cityscapes-like for common names, hashed otherwise)."""
-    if c.name in _NAMED_COLOURS:
-        return _NAMED_COLOURS[c.name]
-    h = hashlib.md5(c.name.encode()).digest()
-    return (h[0], h[1], h[2])
-
 
 def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.ndarray]:
     """Grid-order rasters: rgb (ny, nx, 3) uint8, semantic (ny, nx) int16 class id (-1 none),
@@ -45,10 +30,7 @@ def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.nd
     rgb = (mesh.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
     rgb[~valid] = 0
     labels = mesh.labels().cpu().numpy().astype(np.int16)
-    pal = np.zeros((257, 3), dtype=np.uint8)  # index 256 <- label -1
-    for c in classes:
-        pal[c.id] = class_colour(c)
-    sem_rgb = pal[np.where(labels < 0, 256, labels)]
+    sem_rgb = colour_labels(labels, classes)
     if not mesh.has_semantics:
         sem_rgb[valid] = (128, 128, 128)
     h = mesh.surface.heights.detach().cpu().numpy().astype(np.float32).copy()

@@ -138,12 +138,13 @@ class MultiOptimizer:
         for o in self.opts:
             o.step()
 
-    def set_lr_factor(self, f: float) -> None:
-        """Scale every group's rate from its base (per-vertex L1 / Adam steps jitter around the optimum
-        unless the rate decays; decaying the MLP too measured better than keeping it, see README)."""
+    def set_lr_factor(self, f: float, per_group: dict[str, float] | None = None) -> None:
+        """Scale every group's rate from its base by ``f``, or by ``per_group[name]`` for the named groups
+        (per-vertex L1 / Adam steps jitter around the optimum unless the rate decays)."""
+        per_group = per_group or {}
         for o, base in zip(self.opts, self.base, strict=True):
             for g, b in zip(o.param_groups, base, strict=True):
-                g["lr"] = b * f
+                g["lr"] = b * per_group.get(g.get("name", ""), f)
 
     def state_dict(self) -> dict:
         return {"opts": [o.state_dict() for o in self.opts]}
@@ -378,6 +379,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     n_epoch = max(1, int(round(len(pool) * min(cfg.pixel_fraction, 1.0))))
     steps_per_epoch = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
     depth_on = use_depth and pool.depth is not None and cfg.w_depth > 0
+    depth_first = depth_on and cfg.depth_first
     total_steps = max(1, cfg.epochs * steps_per_epoch)
     bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, disable=not progress, desc="mesh",
                unit="step", dynamic_ncols=True)
@@ -397,6 +399,10 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
             b = perm[step * cfg.pixels_per_step:(step + 1) * cfg.pixels_per_step]
             if b.numel() == 0:
                 continue
+            if depth_first:
+                # Measured depth is the strongest height signal: put those pixels first so that they fall
+                # in the ``height_pixels_per_step`` rays whose triangles get fresh MLP heights and gradients.
+                b = b[torch.sort((pool.depth[b] <= 0).to(torch.int8), stable=True).indices]
             T = corrected_poses(pool.T, delta)
             o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
             fw = forward_rays(model, cache, bounds, o, d, cfg.max_dist, height_rays=cfg.height_pixels_per_step)
@@ -445,7 +451,8 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 bar.update(1)
                 continue
             bad = 0
-            opt.set_lr_factor(cfg.lr_decay_final ** ((epoch * steps_per_epoch + step) / total_steps))
+            frac = (epoch * steps_per_epoch + step) / total_steps
+            opt.set_lr_factor(cfg.lr_decay_final ** frac, {"height": cfg.lr_height_decay_final ** frac})
             opt.step()
             with torch.no_grad():
                 road = pool.road[b][rows]

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
+from pavemap.palette import PAVEMAP_CLASSES
 from pavemap.types import SemanticClass
 
 
@@ -77,16 +78,7 @@ _ROME_KITTI = [
     SemanticClass(6, "sky", sky=True),
 ]
 #: pavemap's own table (the synthetic world's ids; importers default to it).
-_PAVEMAP = [
-    SemanticClass(0, "road", road=True),
-    SemanticClass(1, "lane_marking", road=True),
-    SemanticClass(2, "curb"),
-    SemanticClass(3, "sidewalk"),
-    SemanticClass(4, "terrain"),
-    SemanticClass(5, "vehicle", movable=True),
-    SemanticClass(6, "building"),
-    SemanticClass(7, "sky", sky=True),
-]
+_PAVEMAP = PAVEMAP_CLASSES
 
 #: Mapillary Vistas v1.2 label ids (config_v1.2.json order) → RoMe nuScenes-style class names.
 VISTAS_V12 = [

@@ -11,22 +11,14 @@ from PIL import Image, ImageDraw
 
 from pavemap.io.atomic import atomic_path
 from pavemap.io.sequence import DETECTIONS_FILE, load_rgb, load_semantics, read_detections, read_sequence
+from pavemap.palette import DEFECT_RGB, semantic_palette
 
-DEFECT_COLOURS = {0: (40, 220, 40), 1: (255, 225, 0), 2: (255, 140, 0), 3: (235, 20, 20)}
-CLASS_COLOURS = {
-    "road": (128, 64, 128), "lane_marking": (255, 255, 255), "curb": (200, 200, 60), "sidewalk": (244, 35, 232),
-    "terrain": (107, 142, 35), "vegetation": (107, 142, 35), "vehicle": (0, 0, 142), "car": (0, 0, 142),
-    "building": (70, 70, 70), "sky": (70, 130, 180),
-}
+DEFECT_COLOURS = DEFECT_RGB
 PREFERRED_ORDER = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 
 
 def _palette(seq) -> np.ndarray:
-    pal = np.zeros((256, 3), np.uint8)
-    rng = np.random.default_rng(3)
-    for c in seq.classes:
-        pal[c.id] = CLASS_COLOURS.get(c.name, tuple(int(v) for v in rng.integers(40, 255, 3)))
-    return pal
+    return semantic_palette(seq.classes)[:256]
 
 
 def _dashed_rect(draw: ImageDraw.ImageDraw, box, colour, dash: int = 5, width: int = 2) -> None:

@@ -25,19 +25,13 @@ import numpy as np
 import torch
 
 from pavemap.errors import PavemapError
+from pavemap.palette import PAVEMAP_CLASSES
 
 # ---------------------------------------------------------------------------- class table
 
 #: Semantic classes of the synthetic world (ids fixed here only; stages read flags from sequence.json).
 CLASSES: list[dict] = [
-    {"id": 0, "name": "road", "road": True, "movable": False, "sky": False},
-    {"id": 1, "name": "lane_marking", "road": True, "movable": False, "sky": False},
-    {"id": 2, "name": "curb", "road": False, "movable": False, "sky": False},
-    {"id": 3, "name": "sidewalk", "road": False, "movable": False, "sky": False},
-    {"id": 4, "name": "terrain", "road": False, "movable": False, "sky": False},
-    {"id": 5, "name": "vehicle", "road": False, "movable": True, "sky": False},
-    {"id": 6, "name": "building", "road": False, "movable": False, "sky": False},
-    {"id": 7, "name": "sky", "road": False, "movable": False, "sky": True},
+    {"id": c.id, "name": c.name, "road": c.road, "movable": c.movable, "sky": c.sky} for c in PAVEMAP_CLASSES
 ]
 ROAD, MARKING, CURB, SIDEWALK, TERRAIN, VEHICLE, BUILDING, SKY = range(8)
 
