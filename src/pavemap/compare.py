@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import shapely
-from scipy.spatial import cKDTree
 
 from pavemap.errors import PavemapError
 from pavemap.export.geo import local_tangent, origin_to_dict
@@ -100,34 +99,15 @@ def _collect(layer: DefectLayer, to_common=None) -> _Defects:
 
 
 def match_defects(a: _Defects, b: _Defects, match_m: float) -> list[tuple[int, int, float]]:
-    """Greedy one-to-one pairs (i in a, j in b, centroid distance), closest first."""
-    if len(a.ids) == 0 or len(b.ids) == 0:
-        return []
-    cand: set[tuple[int, int]] = set()
-    tree = cKDTree(b.centroids)
-    for i, js in enumerate(tree.query_ball_point(a.centroids, r=match_m)):
-        cand.update((i, j) for j in js)
-    # overlapping polygons are candidates whatever their centroid distance
-    ga = np.array([g if g is not None else shapely.Point() for g in a.geoms], dtype=object)
-    gb = np.array([g if g is not None else shapely.Point() for g in b.geoms], dtype=object)
-    ia, ib = shapely.STRtree(gb).query(ga, predicate="intersects")
-    if len(ia):
-        inter = shapely.area(shapely.intersection(ga[ia], gb[ib]))
-        cand.update((int(i), int(j)) for i, j, s in zip(ia, ib, inter, strict=True) if s > _EPS)
-    if not cand:
-        return []
-    pairs = np.array(sorted(cand), dtype=np.int64)
-    d = np.linalg.norm(a.centroids[pairs[:, 0]] - b.centroids[pairs[:, 1]], axis=1)
-    order = np.lexsort((pairs[:, 1], pairs[:, 0], d))
-    used_a, used_b, out = set(), set(), []
-    for k in order:
-        i, j = int(pairs[k, 0]), int(pairs[k, 1])
-        if i in used_a or j in used_b:
-            continue
-        used_a.add(i)
-        used_b.add(j)
-        out.append((i, j, float(d[k])))
-    return out
+    """Greedy one-to-one pairs (i in a, j in b, centroid distance), closest first.
+
+    The same rule as the ground-truth evaluation (:func:`pavemap.evaluate.gt.match`).
+    """
+    from pavemap.evaluate.gt import match
+
+    ga = [g if g is not None else shapely.Point() for g in a.geoms]
+    gb = [g if g is not None else shapely.Point() for g in b.geoms]
+    return match(ga, a.centroids, gb, b.centroids, match_m)
 
 
 def _classify(a: _Defects, b: _Defects, i: int, j: int, grow_ratio: float) -> tuple[str, list[str]]:
