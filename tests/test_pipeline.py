@@ -124,3 +124,23 @@ def test_readme_python_example_runs(tiny_seq, tmp_path):
     namespace: dict = {}
     exec(compile(code, "README.md", "exec"), namespace)
     assert namespace["result"].out_dir == tmp_path / "r"
+
+
+def test_all_detections_filtered_gives_a_clear_report(tiny_seq, tmp_path):
+    """Every box lies in the sky: nothing survives the road filter, and the report says why."""
+    cam = next(iter(tiny_seq.cameras.values()))
+    lines = [
+        json.dumps({"frame": f.index, "camera": cam.name, "box": [10, 0, 40, 8], "cls": 0, "conf": 0.9})
+        for f in tiny_seq.frames
+    ]
+    dets = tmp_path / "sky.jsonl"
+    dets.write_text("\n".join(lines) + "\n")
+    cfg = _fast_config("kitti")
+    cfg.detector.backend = "file"
+    cfg.detector.file = str(dets)
+    res = pavemap.run(tiny_seq, cfg, tmp_path / "run", progress=False)
+    assert res.defects == []
+    assert res.metrics["filtered_detections"] == len(lines)
+    assert res.metrics["valid_detections"] == 0
+    html = (tmp_path / "run" / "report.html").read_text().lower()
+    assert "no defects" in html and "filter" in html

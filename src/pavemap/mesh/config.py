@@ -30,12 +30,13 @@ class MeshConfig:
     lr_height: float = 0.001
     lr_pose: float = 0.001
     lr_decay_final: float = 0.1  # learning rates decay exponentially to this fraction by the last step
-    lr_height_decay_final: float = 1.0  # the height MLP's own decay target (see MultiOptimizer.set_lr_factor)
+    lr_height_decay_final: float = 0.1  # the height MLP's own decay target (1.0: constant SPEC rate)
     w_rgb: float = 1.0
     w_sem: float = 0.5
     w_depth: float = 1.0  # lambda_depth, used only where depth maps exist
-    depth_outlier_m: float = 0.5  # depth residuals above max(this, rel * depth) are ignored (not road)
-    depth_outlier_rel: float = 0.05
+    # Depth residuals whose height equivalent |D_render - D_gt| * |d_z| exceeds this are ignored (a facade,
+    # a pole: not road). In height units, not depth: at 20 m a 0.1 m height error is a >1 m depth residual.
+    depth_outlier_m: float = 0.25
     w_smooth: float = 1.0
     render_scale: float = 0.25  # training image scale
     eval_scale: float = 0.25  # held-out evaluation image scale

@@ -425,8 +425,10 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 dg = pool.depth[b][rows]
                 # A height field cannot stand up into a wall: a pixel whose measured depth is far from
                 # the surface's (a facade, a pole) is an outlier, not a reason to bend the road.
-                gate = torch.clamp(cfg.depth_outlier_rel * dg, min=cfg.depth_outlier_m)
-                m = (dg > 0) & ((lam.detach() - dg).abs() < gate)
+                # The gate is in height units: the residual times the ray's vertical speed per unit depth
+                # (a depth-relative gate dropped exactly the far road pixels whose heights were off most).
+                dz = d[rows, 2].detach().abs()
+                m = (dg > 0) & ((lam.detach() - dg).abs() * dz < cfg.depth_outlier_m)
                 if m.any():
                     l_depth = (lam[m] - dg[m]).abs().mean()
                     loss = loss + cfg.w_depth * l_depth
