@@ -17,7 +17,9 @@ t = time.time()
 seq = synthesize("/tmp/scene", preset="nuscenes-like", seed=0, frames=16, scale=0.25, progress=False)
 detect_sequence(seq, seed=0)
 synth_s = time.time() - t
-cfg = pavemap.load_config("nuscenes"); cfg.device = "cuda"; cfg.mesh.epochs = 4
+cfg = pavemap.load_config("nuscenes")
+cfg.device = "cuda"
+cfg.mesh.epochs = 4
 t = time.time()
 res = pavemap.run("/tmp/scene", cfg, "/tmp/run", progress=False)
 rec = {"device": torch.cuda.get_device_name(0), "synth_s": synth_s, "run_s": time.time() - t,
