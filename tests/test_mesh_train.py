@@ -178,3 +178,37 @@ def test_pose_refinement_recovers_perturbation(scene):
     assert after < 0.8 * before, (after, before)
     _, m0 = reconstruct(pert, None, _cfg(epochs=4, pixels_per_step=512, holdout_every=0), progress=False)
     assert m["psnr"] > m0["psnr"]
+
+
+def test_depth_samples_keep_returns_on_their_own_rays():
+    """Sparse depth downscaled: every target pixel holding a return keeps one, and its uv is that
+    return's exact position in the scaled camera (so its ray is the LiDAR return's ray)."""
+    from pavemap.mesh.data import _depth_samples
+    from pavemap.types import Camera
+
+    rng = np.random.default_rng(0)
+    H, W, s = 40, 64, 0.25
+    dep = np.zeros((H, W), np.float32)
+    ys, xs = rng.integers(0, H, 60), rng.integers(0, W, 60)
+    dep[ys, xs] = rng.uniform(2, 30, 60).astype(np.float32)
+    cam = Camera("c", W, H, np.array([[50.0, 0, 31.5], [0, 50.0, 19.5], [0, 0, 1]]))
+    small = cam.scaled(s)
+    out, uv = _depth_samples(dep, (small.width, small.height), s)
+    ty, tx = np.nonzero(out)
+    # as many target pixels with depth as distinct target pixels the returns fall in
+    key = np.unique(np.clip(np.rint(s * (np.nonzero(dep)[0] + 0.5) - 0.5), 0, small.height - 1) * small.width
+                    + np.clip(np.rint(s * (np.nonzero(dep)[1] + 0.5) - 0.5), 0, small.width - 1))
+    assert ty.size == key.size > 10
+    # each kept depth sits on its source ray: back to source pixel coordinates it lands on a return
+    u_src = (uv[ty, tx, 0] + 0.5) / s - 0.5
+    v_src = (uv[ty, tx, 1] + 0.5) / s - 0.5
+    np.testing.assert_allclose(u_src, np.rint(u_src), atol=1e-4)
+    np.testing.assert_allclose(v_src, np.rint(v_src), atol=1e-4)
+    np.testing.assert_array_equal(dep[np.rint(v_src).astype(int), np.rint(u_src).astype(int)], out[ty, tx])
+    # the scaled intrinsics map the source pixel's ray to that uv
+    ray = np.linalg.inv(cam.K) @ np.stack([np.rint(u_src), np.rint(v_src), np.ones_like(u_src)])
+    proj = small.K @ ray
+    np.testing.assert_allclose(proj[:2] / proj[2], np.stack([uv[ty, tx, 0], uv[ty, tx, 1]]), atol=1e-3)
+    # pixels without a return keep their integer centre
+    empty = out == 0
+    np.testing.assert_array_equal(uv[empty][:, 0], np.nonzero(empty)[1])

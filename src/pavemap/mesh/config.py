@@ -51,6 +51,8 @@ class MeshConfig:
     threads: int | None = None  # torch CPU threads during the run (None: leave torch's setting)
     pose_refine: bool = False
     camera_height: float = 1.5  # initial road plane below the median camera centre (m)
+    init_from_depth: bool = True  # start from the binned measured ground where depth exists (see _depth_relief)
+    init_cell_m: float = 1.0  # bin size of that initial surface (m): 1 m measured best of 0.25-2 m
     init_height_search: bool = True  # refine the initial plane height by multi-view colour agreement
     max_dist: float = 80.0  # longest ray considered (m)
     height_refresh_steps: int = 16  # steps between full-grid height re-evaluations used by the march

@@ -24,7 +24,8 @@ class PixelPool:
     """Usable pixels of a set of views at one image scale.
 
     keys: the views; Kinv (V, 3, 3) float32 inverse intrinsics at that scale; T (V, 4, 4) float32
-    camera-to-world. Per pixel (P,): view long, uv (P, 2) float32 pixel centres, rgb (P, 3) uint8,
+    camera-to-world. Per pixel (P,): view long, uv (P, 2) float32 pixel centres (a depth pixel: its
+    LiDAR return's exact position, see _depth_samples), rgb (P, 3) uint8,
     channel long (semantic channel, -1 unknown), road bool (ground-truth road class), depth (P,)
     float32 metres (0 unknown) or None. Only pixels kept by the loss mask (not movable, not sky) are
     stored.

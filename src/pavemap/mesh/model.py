@@ -77,10 +77,16 @@ def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float) -> Grid:
 def ground_under_trajectory(grid: Grid, traj_xy: np.ndarray, ground_z: np.ndarray, k: int = 4) -> np.ndarray:
     """(Nv,) float32 initial heights of the kept vertices: inverse-distance weighting of the ground
     heights ``ground_z`` (F,) under the trajectory points ``traj_xy`` (F, 2), k nearest."""
-    from scipy.spatial import cKDTree
-
     vid = np.flatnonzero(grid.valid.reshape(-1))
     xy = np.stack([grid.x0 + (vid % grid.nx) * grid.res, grid.y0 + (vid // grid.nx) * grid.res], 1)
+    return idw_ground(traj_xy, ground_z, xy, k)
+
+
+def idw_ground(traj_xy: np.ndarray, ground_z: np.ndarray, xy: np.ndarray, k: int = 4) -> np.ndarray:
+    """(N,) float32 ground height under the trajectory at points ``xy`` (N, 2): inverse-distance weighting
+    of ``ground_z`` (F,) at the trajectory points ``traj_xy`` (F, 2), k nearest."""
+    from scipy.spatial import cKDTree
+
     k = min(k, len(traj_xy))
     dist, idx = cKDTree(traj_xy).query(xy, k=k)
     dist, idx = dist.reshape(len(xy), k), idx.reshape(len(xy), k)
