@@ -12,6 +12,7 @@ import argparse
 import json
 import platform
 import resource
+import shutil
 import subprocess
 import sys
 import time
@@ -58,6 +59,8 @@ def main() -> None:
     for preset in args.presets:
         seq_dir = WORK / f"run_{preset}" / "scene"
         run_dir = WORK / f"run_{preset}" / "run"
+        if run_dir.exists():  # measure a fresh run, not a resumed one
+            shutil.rmtree(run_dir)
         t = time.perf_counter()
         proc = subprocess.run(
             [sys.executable, "-c", CHILD, preset, str(seq_dir), str(run_dir), args.device],
