@@ -44,8 +44,8 @@ print(json.dumps({
     "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     "defects": len(res.defects), "evaluation": res.evaluation,
     "mesh": {k: m.get("mesh", {}).get(k) for k in ("psnr", "sem_acc", "height_rmse", "vertices")},
-    "paper_metrics": {k: m.get(k) for k in ("filter_rate", "on_road_precision", "coverage", "obs_per_vertex", "mean_severity", "msr",
-                                             "avg_distance_m")},
+    "paper_metrics": {k: m.get(k) for k in ("filter_rate", "on_road_precision", "coverage", "obs_per_vertex",
+                                             "mean_severity", "msr", "avg_distance_m")},
 }))
 """
 
