@@ -251,7 +251,9 @@ def read_sequence(root: str | os.PathLike, validate: bool = True) -> Sequence:
     if validate:
         problems = validate_sequence(seq)
         if problems:
-            more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+            # validate_sequence stops at 50 problems, so past that the count is a lower bound
+            rest = len(problems) - 3
+            more = f" (and {rest}{'+' if len(problems) >= 50 else ''} more)" if rest > 0 else ""
             first = problems[0]
             raise SequenceError(
                 first.file, first.message + "".join(f"; {p}" for p in problems[1:3]) + more
