@@ -28,7 +28,12 @@ class MeshConfig:
     lr_rgb: float = 0.1
     lr_sem: float = 0.1
     lr_height: float = 0.001
-    lr_pose: float = 0.001
+    lr_pose: float = 0.001  # SPEC's camera-pose rate, used for the translation correction (m)
+    # The rotation correction (rad) gets its own rate: Adam moves a parameter ~lr per step, and a rotation
+    # of lr rad shifts ground seen at 5-20 m by 5-20 lr metres, i.e. at the SPEC's rate the rotation would
+    # jump 10x further than the translation and oscillate (0.3 deg grew to 2.5 deg on the test scene).
+    lr_pose_rot: float = 0.0001
+    pose_warmup: float = 0.25  # fraction of the steps before pose refinement starts
     lr_decay_final: float = 0.1  # learning rates decay exponentially to this fraction by the last step
     lr_height_decay_final: float = 0.1  # the height MLP's own decay target (1.0: constant SPEC rate)
     w_rgb: float = 1.0
@@ -88,5 +93,7 @@ class MeshConfig:
         if min(self.frame_stride, self.pixels_per_step, self.height_pixels_per_step, self.hidden) < 1:
             raise PavemapError("mesh config: frame_stride, pixels_per_step, height_pixels_per_step and hidden "
                                "must be >= 1")
+        if not 0.0 <= self.pose_warmup <= 1.0:
+            raise PavemapError(f"mesh config: pose_warmup must be in [0, 1], got {self.pose_warmup}")
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise PavemapError(f"mesh config: device must be auto, cpu or cuda, got {self.device!r}")

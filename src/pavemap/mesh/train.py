@@ -380,12 +380,17 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         model = RoadMeshModel(grid, len(class_ids), cfg.pe_levels, cfg.hidden, z_vertices, generator=gen)
     model.to(device)
 
-    delta = None
+    pose_w = pose_t = None
     if cfg.pose_refine:
-        delta = torch.nn.Parameter(torch.zeros(len(pool.keys), 6, device=device))
+        # Rotation (rad) and translation (m) are separate parameters in their own Adam groups: Adam moves
+        # each by ~lr per step whatever the gradient's scale, and 1 mrad at the ~5-20 m where the ground is
+        # seen shifts the image as much as 5-20 mm of translation (see MeshConfig.lr_pose_rot).
+        pose_w = torch.nn.Parameter(torch.zeros(len(pool.keys), 3, device=device))
+        pose_t = torch.nn.Parameter(torch.zeros(len(pool.keys), 3, device=device))
     groups = [{"params": list(model.height_mlp.parameters()), "lr": cfg.lr_height, "name": "height"}]
-    if delta is not None:
-        groups.append({"params": [delta], "lr": cfg.lr_pose, "name": "pose"})
+    if pose_w is not None:
+        groups.append({"params": [pose_t], "lr": cfg.lr_pose, "name": "pose"})
+        groups.append({"params": [pose_w], "lr": cfg.lr_pose_rot, "name": "pose_rot"})
     # Per-vertex colours and logits get gradients only where a sampled pixel hits them; dense Adam would
     # keep moving every other vertex on stale momentum (overshooting by ~30 lr), so these use the lazy
     # (sparse) Adam, which updates only the rows hit in the step.
@@ -428,8 +433,9 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         if state is not None:
             model.load_state_dict(state["model"])
             opt.load_state_dict(state["opt"])
-            if delta is not None and state.get("delta") is not None:
-                delta.data.copy_(state["delta"].to(device))
+            if pose_w is not None and state.get("delta") is not None:
+                pose_w.data.copy_(state["delta"][:, :3].to(device))
+                pose_t.data.copy_(state["delta"][:, 3:].to(device))
             history = state["history"]
             start_epoch = int(state["epoch"])
             elapsed_before = float(state.get("seconds", 0.0))
@@ -464,6 +470,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 # Measured depth is the strongest height signal: put those pixels first so that they fall
                 # in the ``height_pixels_per_step`` rays whose triangles get fresh MLP heights and gradients.
                 b = b[torch.sort((pool.depth[b] <= 0).to(torch.int8), stable=True).indices]
+            delta = None if pose_w is None else torch.cat([pose_w, pose_t], 1)
             T = corrected_poses(pool.T, delta)
             o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
             fw = forward_rays(model, cache, bounds, o, d, cfg.max_dist, height_rays=cfg.height_pixels_per_step)
@@ -515,7 +522,12 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 continue
             bad = 0
             frac = (epoch * steps_per_epoch + step) / total_steps
-            opt.set_lr_factor(cfg.lr_decay_final ** frac, {"height": cfg.lr_height_decay_final ** frac})
+            per_group = {"height": cfg.lr_height_decay_final ** frac}
+            if frac < cfg.pose_warmup:
+                # Poses stay put until the colours are fitted: a pose gradient through a still random
+                # texture points nowhere, and Adam would move the poses by ~lr per step regardless.
+                per_group.update(pose=0.0, pose_rot=0.0)
+            opt.set_lr_factor(cfg.lr_decay_final ** frac, per_group)
             opt.step()
             with torch.no_grad():
                 road = pool.road[b][rows]
@@ -547,6 +559,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         bar.set_postfix(epoch=f"{epoch + 1}/{cfg.epochs}", loss=f"{history[-1]['loss']:.4f}",
                         psnr=f"{ev['psnr']:.2f}")
         if out_dir is not None:
+            delta = None if pose_w is None else torch.cat([pose_w, pose_t], 1).detach()
             save_checkpoint(Path(out_dir) / CHECKPOINT, model, opt, delta, epoch + 1, history, gen, grid, cfg,
                             elapsed_before + time.perf_counter() - t_start)
     bar.close()
@@ -568,9 +581,9 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         "eval_pixels_per_second": len(epool) / max(ev_s, 1e-9),
         "history": history, "warnings": notes, "config": cfg.to_dict(),
     }
-    if delta is not None:
+    if pose_w is not None:
         with torch.no_grad():
-            Tr = corrected_poses(pool.T, delta).double().cpu().numpy()
+            Tr = corrected_poses(pool.T, torch.cat([pose_w, pose_t], 1)).double().cpu().numpy()
         metrics["refined_poses"] = {f"{k.frame}/{k.camera}": Tr[i].tolist() for i, k in enumerate(pool.keys)}
     if seq.root is not None and (Path(seq.root) / "truth" / "height.npy").is_file():
         truth = HeightField.from_truth(seq.root)
