@@ -139,7 +139,9 @@ def test_bare_calib_variants(tmp_path, style):
     if style == "bare5":
         np.testing.assert_allclose(calib.Tr, TR, atol=1e-9)
         s = import_kitti(root, "00", tmp_path / "seq", camera=2)
-        assert s.frames[0].views["cam2"].depth is not None
+        depth_rel = s.frames[0].views["cam2"].depth
+        assert depth_rel is not None
+        assert (load_depth(s.root / depth_rel) > 0).any(), "velodyne points must land in the depth map"
     else:
         s = import_kitti(root, "00", tmp_path / "seq", camera=0)
         with pytest.raises(SequenceError, match="no P2"):

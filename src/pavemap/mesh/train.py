@@ -502,22 +502,20 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                     loss = loss + cfg.w_depth * l_depth
             l_smooth = ((ht - ht.roll(1, dims=1)) ** 2).mean()
             loss = loss + cfg.w_smooth * l_smooth
-            if not torch.isfinite(loss):
-                bad += 1
-                opt.zero_grad(set_to_none=True)
-                if bad >= cfg.max_bad_steps:
-                    raise PavemapError(f"training diverged: {bad} consecutive non-finite losses (epoch {epoch + 1})")
-                bar.update(1)
-                continue
             opt.zero_grad(set_to_none=True)
-            loss.backward()
-            grads_ok = all(p.grad is None or torch.isfinite(p.grad.coalesce().values() if p.grad.is_sparse
-                                                             else p.grad).all() for p in all_params)
-            if not grads_ok:
+            what = "losses"
+            if bool(torch.isfinite(loss)):
+                loss.backward()
+                what = "gradients"
+                step_ok = all(p.grad is None or torch.isfinite(p.grad.coalesce().values() if p.grad.is_sparse
+                                                              else p.grad).all() for p in all_params)
+            else:
+                step_ok = False
+            if not step_ok:  # skip the step; give up only when it keeps happening
                 bad += 1
                 opt.zero_grad(set_to_none=True)
                 if bad >= cfg.max_bad_steps:
-                    raise PavemapError(f"training diverged: {bad} consecutive non-finite gradients")
+                    raise PavemapError(f"training diverged: {bad} consecutive non-finite {what} (epoch {epoch + 1})")
                 bar.update(1)
                 continue
             bad = 0
