@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 
 from pavemap.geometry import HeightField, intersect_rays, pixel_grid, pixel_rays
-from pavemap.io.sequence import write_sequence
+from pavemap.io.sequence import save_depth, write_sequence
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 CLASSES = [
@@ -71,8 +71,12 @@ def look(eye, yaw_deg: float, pitch_down_deg: float) -> np.ndarray:
 
 
 def make_scene(root: Path, frames: int = 8, width: int = 64, height: int = 40, step: float = 1.2,
-               semantics: bool = True, vehicle: bool = True, cams: tuple = (0.0, 45.0, 180.0)) -> Sequence:
-    """Write a sequence folder with ``frames`` frames of len(cams) cameras and truth/height.*."""
+               semantics: bool = True, vehicle: bool = True, cams: tuple = (0.0, 45.0, 180.0),
+               depth_every: int = 0) -> Sequence:
+    """Write a sequence folder with ``frames`` frames of len(cams) cameras and truth/height.*.
+
+    ``depth_every`` > 0 adds sparse depth maps (a LiDAR-like return on every n-th pixel of every n-th row).
+    """
     root.mkdir(parents=True, exist_ok=True)
     truth = truth_field()
     K = np.array([[0.8 * width, 0, (width - 1) / 2], [0, 0.8 * width, (height - 1) / 2], [0, 0, 1.0]])
@@ -105,7 +109,15 @@ def make_scene(root: Path, frames: int = 8, width: int = 64, height: int = 40, s
                 (root / "semantics" / name).mkdir(parents=True, exist_ok=True)
                 Image.fromarray(lab).save(root / "semantics" / name / f"{f:06d}.png")
                 sem_rel = f"semantics/{name}/{f:06d}.png"
-            views[name] = View(name, f"images/{name}/{f:06d}.png", T, sem_rel, None)
+            dep_rel = None
+            if depth_every:
+                lam = np.where(hit.hit.numpy(), hit.lam.numpy(), 0.0).reshape(height, width)
+                sparse = np.zeros_like(lam)
+                sparse[::depth_every, ::depth_every] = lam[::depth_every, ::depth_every]
+                (root / "depth" / name).mkdir(parents=True, exist_ok=True)
+                save_depth(root / "depth" / name / f"{f:06d}.png", sparse)
+                dep_rel = f"depth/{name}/{f:06d}.png"
+            views[name] = View(name, f"images/{name}/{f:06d}.png", T, sem_rel, dep_rel)
         seq_frames.append(Frame(f, f * 0.1, views))
     seq = Sequence("tiny-mesh", list(CLASSES), cameras, seq_frames, None, root)
     write_sequence(seq, root)

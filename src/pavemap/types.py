@@ -19,6 +19,11 @@ DEFECT_NAMES: dict[str, str] = {
     "D40": "pothole",
 }
 NUM_DEFECT_CLASSES = len(DEFECT_CODES)
+#: Class names (normalised: lower case, ``_`` for separators) that are ground surface besides the road classes.
+GROUND_NAMES: frozenset[str] = frozenset({
+    "curb", "kerb", "sidewalk", "terrain", "ground", "parking", "crosswalk", "road_marking", "lane_marking",
+    "driveable_surface", "drivable_surface", "other_flat", "flat", "grass", "manhole", "bike_lane",
+})
 
 
 @dataclass(frozen=True)
@@ -30,6 +35,14 @@ class SemanticClass:
     road: bool = False
     movable: bool = False
     sky: bool = False
+
+    @property
+    def ground(self) -> bool:
+        """Ground surface (measured depth there is the surface's): road classes and the names of
+        ``GROUND_NAMES``, also as the last part of a dotted name such as nuScenes' ``flat.sidewalk``."""
+        norm = "".join(ch if ch.isalnum() else "_" for ch in self.name.lower())
+        return self.road or norm in GROUND_NAMES or norm.split("_")[0] == "flat" or \
+            self.name.lower().rsplit(".", 1)[-1].replace("-", "_").replace(" ", "_") in GROUND_NAMES
 
 
 @dataclass

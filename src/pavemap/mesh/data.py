@@ -27,8 +27,8 @@ class PixelPool:
     camera-to-world. Per pixel (P,): view long, uv (P, 2) float32 pixel centres (a depth pixel: its
     LiDAR return's exact position, see _depth_samples), rgb (P, 3) uint8,
     channel long (semantic channel, -1 unknown), road bool (ground-truth road class), depth (P,)
-    float32 metres (0 unknown) or None. Only pixels kept by the loss mask (not movable, not sky) are
-    stored.
+    float32 metres (0 unknown, and 0 where the pixel's class is not ground: ``SemanticClass.ground``) or
+    None. Only pixels kept by the loss mask (not movable, not sky) are stored.
     """
 
     keys: list[ViewKey]
@@ -99,6 +99,7 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
                use_semantics: bool, use_depth: bool) -> PixelPool:
     """Load, resize and flatten views. channel_lut (256,) int: class id -> semantic channel (-1 unknown)."""
     movable, sky, road = seq.class_lut("movable"), seq.class_lut("sky"), seq.class_lut("road")
+    ground = seq.class_lut("ground")
     keys, Kinv, T = [], [], []
     cols: dict[str, list[np.ndarray]] = {k: [] for k in ("view", "uv", "rgb", "ch", "road", "depth")}
     for vi, (frame_index, v) in enumerate(views):
@@ -123,6 +124,10 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
                 dep, uvmap = _depth_samples(raw, size, scale)
         else:
             dep = np.zeros(size[::-1], dtype=np.float32)
+        if use_semantics and v.semantics:
+            # Depth on a building or a pole says nothing about the road's height; under an object standing on
+            # the ground, its lower part would lift the surface (a 0.1-0.3 m bump the size of the object).
+            dep = np.where(ground[lab], dep, 0.0).astype(np.float32)
         yy, xx = np.nonzero(keep)
         keys.append(ViewKey(frame_index, v.camera))
         Kinv.append(np.linalg.inv(cam.K))

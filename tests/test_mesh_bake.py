@@ -1,0 +1,135 @@
+"""Closed-form colour baking (pavemap.mesh.bake) on the tiny textured scene with its true surface."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mesh_scene import make_scene, texture, truth_field
+from pavemap.geometry import HeightField
+from pavemap.io.sequence import read_sequence
+from pavemap.mesh import MeshConfig, reconstruct
+from pavemap.mesh.bake import bake_colours
+from pavemap.mesh.data import build_pool, finite_views
+from pavemap.mesh.model import build_grid
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bake") / "seq"
+    make_scene(root, frames=6, width=64, height=40)
+    return read_sequence(root)
+
+
+def _true_surface(seq, res: float = 0.1):
+    traj = np.array([np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], 0) for f in seq.frames])
+    g = build_grid(traj[:, :2], res, 4.0)
+    xs, ys = g.x0 + res * np.arange(g.nx), g.y0 + res * np.arange(g.ny)
+    X, Y = np.meshgrid(xs, ys)
+    xy = np.stack([X, Y], -1).reshape(-1, 2)
+    z, _ = truth_field().height_at(torch.tensor(xy))
+    return g, xy, z.float().reshape(g.ny, g.nx)
+
+
+def test_baked_colours_match_the_texture(seq):
+    g, xy, heights = _true_surface(seq)
+    lut = np.full(256, -1, dtype=np.int64)
+    for ch, c in enumerate(seq.classes):
+        lut[c.id] = ch
+    views, _ = finite_views(seq, list(range(len(seq.frames))))
+    pool = build_pool(seq, views, 1.0, lut, True, False)
+    valid = torch.from_numpy(g.valid.copy())
+    rgb, support, coloured = bake_colours(heights, valid, g.x0, g.y0, g.res, pool, pool.T, 60.0)
+    assert rgb.shape == (g.ny, g.nx, 3) and support.shape == (g.ny, g.nx)
+    assert torch.isfinite(rgb).all() and (rgb >= 0).all() and (rgb <= 1).all()
+    # well-observed vertices carry the texture's colour there (a pixel averages ~0.1 m of texture)
+    tex = torch.from_numpy(texture(xy).reshape(g.ny, g.nx, 3)).float()
+    seen = (support > 2.0) & valid
+    assert seen.sum() > 500
+    err = (rgb - tex).abs().mean(-1)[seen]
+    assert float(err.median()) < 0.03, float(err.median())
+    # seen vertices are coloured; unseen ones next to them get their neighbours' colour; far from any view
+    # nothing is coloured and the colour is 0 (the caller keeps its own values there)
+    assert (support >= 0).all() and coloured[support > 0].all()
+    filled = coloured & (support == 0)
+    assert filled.any() and (rgb[filled].sum(-1) > 0).all()
+    assert (rgb[~coloured] == 0).all()
+
+
+def test_bake_fills_isolated_gaps():
+    """A vertex no pixel reaches, among seen ones, takes its neighbours' colour, not 0."""
+    from pavemap.mesh.data import PixelPool, ViewKey
+
+    # One camera looking straight down at a flat, uniformly grey plane; the vertex under the optical axis is
+    # reached by no pixel ray centre when pixels are sparser than vertices.
+    K = torch.tensor([[20.0, 0, 3.5], [0, 20.0, 3.5], [0, 0, 1]])
+    T = torch.eye(4)
+    T[:3, :3] = torch.tensor([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # z axis pointing down
+    T[2, 3] = 10.0
+    yy, xx = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
+    uv = torch.stack([xx.reshape(-1), yy.reshape(-1)], 1)
+    n = uv.shape[0]
+    pool = PixelPool([ViewKey(0, "c")], torch.linalg.inv(K)[None], T[None], torch.zeros(n, dtype=torch.long), uv,
+                     torch.full((n, 3), 128, dtype=torch.uint8), torch.full((n,), -1, dtype=torch.long),
+                     torch.ones(n, dtype=torch.bool), None)
+    res = 0.1  # pixel footprint at 10 m: 0.5 m, so most vertices get no pixel
+    hf = HeightField.plane(-2.0, -2.0, res, 41, 41, 0.0)
+    rgb, support, coloured = bake_colours(hf.heights.float(), hf.valid, hf.x0, hf.y0, res, pool, pool.T, 60.0,
+                                fill_sigma=3.0)
+    inner = coloured[12:28, 12:28]
+    assert inner.all() and (support[12:28, 12:28] == 0).any()  # some inner vertices were filled, not seen
+    np.testing.assert_allclose(rgb[12:28, 12:28].numpy(), 128 / 255.0, atol=1e-5)
+
+
+def test_reconstruction_with_baking_beats_adam_alone(seq):
+    base = dict(resolution=0.1, crop_m=4.0, epochs=2, render_scale=1.0, eval_scale=1.0, pixels_per_step=512,
+                holdout_every=3, device="cpu", threads=1, resume=False)
+    _, m_bake = reconstruct(seq, None, MeshConfig(**base), progress=False)
+    _, m_adam = reconstruct(seq, None, MeshConfig(**base, bake_init=False, bake_final=False), progress=False)
+    assert m_bake["psnr"] > m_adam["psnr"] + 1.0, (m_bake["psnr"], m_adam["psnr"])
+
+
+def test_ground_classes():
+    from pavemap.types import SemanticClass
+
+    ground = ["road", "curb", "flat.sidewalk", "flat.driveable_surface", "Terrain", "lane-marking"]
+    assert all(SemanticClass(0, n, road=(n == "road")).ground for n in ground)
+    assert not any(SemanticClass(0, n).ground for n in ["building", "vehicle.car", "static.vegetation", "pole"])
+
+
+def test_depth_relief_keeps_the_curb_and_ignores_objects(tmp_path):
+    """The initial surface from measured depth: the 0.12 m curb stays a step with the fine bins, and depth on
+    a non-ground class (the parked vehicle) is dropped from the pool."""
+    from mesh_scene import CURB, ROAD_HALF
+    from pavemap.mesh.model import ground_under_trajectory
+    from pavemap.mesh.train import _depth_relief
+
+    seq = read_sequence(make_scene(tmp_path / "d", frames=6, width=64, height=40, depth_every=1).root)
+    lut = np.full(256, -1, dtype=np.int64)
+    for ch, c in enumerate(seq.classes):
+        lut[c.id] = ch
+    views, _ = finite_views(seq, list(range(len(seq.frames))))
+    pool = build_pool(seq, views, 1.0, lut, True, True)
+    ground_ids = torch.tensor([c.id for c in seq.classes if c.ground])
+    lab_of_channel = torch.tensor([c.id for c in seq.classes])
+    has = pool.depth > 0
+    assert has.sum() > 1000 and torch.isin(lab_of_channel[pool.channel[has]], ground_ids).all()
+    traj = np.array([np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], 0) for f in seq.frames])
+    g = build_grid(traj[:, :2], 0.1, 5.0)
+    base = ground_under_trajectory(g, traj[:, :2], traj[:, 2] - 1.5)
+    vid = np.flatnonzero(g.valid.reshape(-1))
+    xy = np.stack([g.x0 + (vid % g.nx) * g.res, g.y0 + (vid // g.nx) * g.res], 1)
+    truth, _ = truth_field().height_at(torch.tensor(xy))
+    truth = truth.numpy()
+
+    def step(z):  # mean height just outside minus just inside the curb, where the drive passes
+        x_ok = (xy[:, 0] > 1.0) & (xy[:, 0] < 5.0)
+        outside = x_ok & (np.abs(np.abs(xy[:, 1]) - ROAD_HALF - 0.25) < 0.1)
+        inside = x_ok & (np.abs(np.abs(xy[:, 1]) - ROAD_HALF + 0.25) < 0.1)
+        return float(z[outside].mean() - z[inside].mean())
+
+    coarse = base + _depth_relief(pool, g, traj, traj[:, 2] - 1.5, 1.0, fill_sigmas=(1.0, 2.0, 4.0))
+    fine = base + _depth_relief(pool, g, traj, traj[:, 2] - 1.5, 1.0, fine_cell=0.3, fill_sigmas=(1.0, 2.0, 4.0))
+    assert step(truth) > CURB - 0.01
+    assert step(fine) > 0.75 * step(truth) > step(coarse), (step(fine), step(truth), step(coarse))
