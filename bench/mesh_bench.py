@@ -99,6 +99,7 @@ def run_preset(preset: str, data: Path, device: str, out_root: Path | None, epoc
         "seconds_per_epoch": round(sum(h["seconds"] for h in hist) / max(1, len(hist)), 2),
         "peak_rss_mb": round(peak_rss_mb(), 0),
         "psnr_db": m["psnr"], "sem_acc": m["sem_acc"], "height_rmse_m": m.get("height_rmse"),
+        "height_rmse_seen_m": m.get("height_rmse_seen"), "seen_vertices": m.get("height_rmse_seen_vertices"),
         "renderer_pixels_per_s": round(pps, 0),
         "history": [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in h.items()} for h in hist],
         "warnings": m["warnings"],
