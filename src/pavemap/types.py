@@ -40,9 +40,11 @@ class SemanticClass:
     def ground(self) -> bool:
         """Ground surface (measured depth there is the surface's): road classes and the names of
         ``GROUND_NAMES``, also as the last part of a dotted name such as nuScenes' ``flat.sidewalk``."""
-        norm = "".join(ch if ch.isalnum() else "_" for ch in self.name.lower())
-        return self.road or norm in GROUND_NAMES or norm.split("_")[0] == "flat" or \
-            self.name.lower().rsplit(".", 1)[-1].replace("-", "_").replace(" ", "_") in GROUND_NAMES
+        def norm(s: str) -> str:
+            return "".join(ch if ch.isalnum() else "_" for ch in s.lower())
+
+        full, last = norm(self.name), norm(self.name.rsplit(".", 1)[-1])
+        return self.road or full in GROUND_NAMES or last in GROUND_NAMES or full.startswith("flat_")
 
 
 @dataclass

@@ -153,14 +153,11 @@ def _depth_relief(pool: PixelPool, grid, traj: np.ndarray, ground_z: np.ndarray,
         o, d = view_rays(pool.Kinv, pool.T, pool.view[sel], pool.uv[sel])
         pts = (o.double() + pool.depth[sel].double()[:, None] * d.double()).cpu().numpy()
     r = pts[:, 2] - idw_ground(traj[:, :2], ground_z, pts[:, :2])
-    nbx = int(math.ceil((grid.nx - 1) * grid.res / cell)) + 1
-    nby = int(math.ceil((grid.ny - 1) * grid.res / cell)) + 1
-    ix = np.floor((pts[:, 0] - grid.x0) / cell).astype(np.int64)
-    iy = np.floor((pts[:, 1] - grid.y0) / cell).astype(np.int64)
-    ok = (np.abs(r) < gate) & (ix >= 0) & (ix < nbx) & (iy >= 0) & (iy < nby)
+    px, py = pts[:, 0] - grid.x0, pts[:, 1] - grid.y0  # offsets from the grid origin
+    key, inside, (nby, nbx) = _bin_keys(px, py, grid, cell)
+    ok = (np.abs(r) < gate) & inside
     if ok.sum() < 100:
         return None
-    key = iy * nbx + ix
     for _ in range(2):
         cnt = np.bincount(key[ok], minlength=nbx * nby).astype(np.float64)
         tot = np.bincount(key[ok], weights=r[ok], minlength=nbx * nby)
@@ -181,30 +178,43 @@ def _depth_relief(pool: PixelPool, grid, traj: np.ndarray, ground_z: np.ndarray,
         empty &= ~fill
     vid = np.flatnonzero(grid.valid.reshape(-1))
     vx, vy = (vid % grid.nx) * grid.res, (vid // grid.nx) * grid.res  # vertex offsets from the grid origin
-    relief = ndimage.map_coordinates(val, [vy / cell - 0.5, vx / cell - 0.5], order=1, mode="nearest")
+    relief = _sample_bins(val, vx, vy, cell)
     if fine_cell and fine_cell < cell:
-        relief = relief + _fine_relief(pts, r, val, grid, cell, fine_cell, fine_min, vx, vy)
+        relief = relief + _fine_relief(px, py, r - _sample_bins(val, px, py, cell), grid, fine_cell, fine_min,
+                                       vx, vy)
     return relief.astype(np.float32)
 
 
-def _fine_relief(pts: np.ndarray, r: np.ndarray, coarse: np.ndarray, grid, cell: float, fine: float,
-                 fine_min: int, vx: np.ndarray, vy: np.ndarray, gate: float = 0.3) -> np.ndarray:
-    """(Nv,) what the ``cell`` m bins miss: the median residual of the measured points per ``fine`` m bin
-    (bins with at least ``fine_min`` points; 0 elsewhere), sampled bilinearly at the vertex offsets vx, vy.
+def _bin_keys(px: np.ndarray, py: np.ndarray, grid, cell: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Flat bin index (N,) of points at offsets px, py from the grid origin in ``cell`` m bins covering the
+    grid, whether each falls inside, and the bins' (rows, cols)."""
+    nbx = int(math.ceil((grid.nx - 1) * grid.res / cell)) + 1
+    nby = int(math.ceil((grid.ny - 1) * grid.res / cell)) + 1
+    ix, iy = np.floor(px / cell).astype(np.int64), np.floor(py / cell).astype(np.int64)
+    inside = (ix >= 0) & (ix < nbx) & (iy >= 0) & (iy < nby)
+    return iy * nbx + ix, inside, (nby, nbx)
+
+
+def _sample_bins(values: np.ndarray, px: np.ndarray, py: np.ndarray, cell: float) -> np.ndarray:
+    """Bilinear samples of per-bin ``values`` (rows, cols) at offsets px, py (bin centres at (k + 0.5) cell)."""
+    from scipy import ndimage
+
+    return ndimage.map_coordinates(values, [py / cell - 0.5, px / cell - 0.5], order=1, mode="nearest")
+
+
+def _fine_relief(px: np.ndarray, py: np.ndarray, r2: np.ndarray, grid, fine: float, fine_min: int,
+                 vx: np.ndarray, vy: np.ndarray, gate: float = 0.3) -> np.ndarray:
+    """(Nv,) what the coarse bins miss: the median of the points' residuals ``r2`` (N,) to the coarse surface
+    per ``fine`` m bin (bins with at least ``fine_min`` points; 0 elsewhere), sampled bilinearly at the vertex
+    offsets vx, vy. px, py: the points' offsets from the grid origin.
 
     Why: the coarse bins smear a 0.12 m curb over +-1 m, and the height MLP cannot sharpen it (its finest
     positional-encoding period is 1/2^(L-1) of the grid's extent: ~10 m on a 160 m drive). The median keeps the
     step where the two sides of a curb meet in one bin.
     """
-    from scipy import ndimage
-
-    px, py = pts[:, 0] - grid.x0, pts[:, 1] - grid.y0
-    r2 = r - ndimage.map_coordinates(coarse, [py / cell - 0.5, px / cell - 0.5], order=1, mode="nearest")
-    nfx = int(math.ceil((grid.nx - 1) * grid.res / fine)) + 1
-    nfy = int(math.ceil((grid.ny - 1) * grid.res / fine)) + 1
-    ix, iy = np.floor(px / fine).astype(np.int64), np.floor(py / fine).astype(np.int64)
-    ok = (np.abs(r2) < gate) & (ix >= 0) & (ix < nfx) & (iy >= 0) & (iy < nfy)
-    key, val = iy[ok] * nfx + ix[ok], r2[ok]
+    key, inside, (nfy, nfx) = _bin_keys(px, py, grid, fine)
+    ok = (np.abs(r2) < gate) & inside
+    key, val = key[ok], r2[ok]
     order = np.lexsort((val, key))
     key, val = key[order], val[order]
     uniq, start, count = np.unique(key, return_index=True, return_counts=True)
@@ -215,9 +225,8 @@ def _fine_relief(pts: np.ndarray, r: np.ndarray, coarse: np.ndarray, grid, cell:
     grid_v[uniq[keep]] = med[keep]
     grid_w[uniq[keep]] = 1.0
     grid_v, grid_w = grid_v.reshape(nfy, nfx), grid_w.reshape(nfy, nfx)
-    coords = [vy / fine - 0.5, vx / fine - 0.5]
-    w = ndimage.map_coordinates(grid_w, coords, order=1, mode="nearest")
-    v = ndimage.map_coordinates(grid_v * grid_w, coords, order=1, mode="nearest")
+    w = _sample_bins(grid_w, vx, vy, fine)
+    v = _sample_bins(grid_v * grid_w, vx, vy, fine)
     return np.where(w > 1e-6, v / np.maximum(w, 1e-6), 0.0)
 
 
