@@ -146,12 +146,17 @@ def _rot_err_deg(Ra, Rb):
     return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
-@pytest.mark.xfail(strict=True, reason="known gap: poses re-aligned to re-baked colours recover 0.200 -> 0.092 m "
-                   "when the heights are the true ones, but here the heights (no depth, learned from a plane at "
-                   "lr 1e-3) stay ~0.09 m off and the poses absorb that: 0.200 -> 0.191 m")
-def test_pose_refinement_recovers_perturbation(scene):
+@pytest.fixture(scope="module")
+def depth_scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("meshd") / "seq"
+    make_scene(root, frames=6, width=48, height=32, depth_every=2)
+    return read_sequence(root)
+
+
+def test_pose_refinement_recovers_perturbation(depth_scene):
+    """A known 0.3 deg / 0.2 m perturbation of every view (with LiDAR-like depth, as the synthetic world has)."""
     rng = np.random.default_rng(3)
-    pert = copy.deepcopy(scene)
+    pert = copy.deepcopy(depth_scene)
     truth = {}
     for f in pert.frames:
         for name, v in f.views.items():
@@ -176,9 +181,10 @@ def test_pose_refinement_recovers_perturbation(scene):
         Tp = pert.frame_by_index()[int(key.split("/")[0])].views[key.split("/")[1]].T_world_cam
         before += np.linalg.norm(Tp[:3, 3] - T0[:3, 3])
         after += np.linalg.norm(T[:3, 3] - T0[:3, 3])
-    assert after < 0.8 * before, (after, before)
+    assert after < 0.7 * before, (after, before)
+    assert all(r["cost_last"] < r["cost_first"] for r in m["pose_alignment"])
     _, m0 = reconstruct(pert, None, _cfg(epochs=4, pixels_per_step=512, holdout_every=0), progress=False)
-    assert m["psnr"] > m0["psnr"]
+    assert m["psnr"] > m0["psnr"] + 3.0, (m["psnr"], m0["psnr"])
 
 
 def test_depth_samples_keep_returns_on_their_own_rays():
@@ -213,3 +219,25 @@ def test_depth_samples_keep_returns_on_their_own_rays():
     # pixels without a return keep their integer centre
     empty = out == 0
     np.testing.assert_array_equal(uv[empty][:, 0], np.nonzero(empty)[1])
+
+
+def test_common_motion_removed_and_corrections_interpolated():
+    from pavemap.mesh.data import ViewKey
+    from pavemap.mesh.pose import interpolate_corrections, remove_common_motion
+
+    g = torch.Generator().manual_seed(0)
+    centres = torch.randn(12, 3, generator=g, dtype=torch.float64) * 5
+    p = centres - centres.mean(0)
+    omega, tau = torch.tensor([0.001, -0.002, 0.003], dtype=torch.float64), torch.tensor([0.1, -0.05, 0.02],
+                                                                                         dtype=torch.float64)
+    rigid = torch.cat([omega.expand(12, 3), tau + torch.cross(omega.expand(12, 3), p, dim=1)], 1)
+    own = torch.randn(12, 6, generator=g, dtype=torch.float64) * 0.01
+    own = remove_common_motion(own, centres)  # the views' own errors: no rigid part left
+    np.testing.assert_allclose(remove_common_motion(own, centres), own, atol=1e-12)
+    np.testing.assert_allclose(remove_common_motion(own + rigid, centres), own, atol=1e-10)
+    assert remove_common_motion(rigid, centres).abs().max() < 1e-12
+    keys = [ViewKey(f, "A") for f in (0, 10, 20)]
+    delta = torch.tensor([[0.0] * 6, [1.0] * 6, [3.0] * 6])
+    out = interpolate_corrections(keys, delta, [ViewKey(5, "A"), ViewKey(15, "A"), ViewKey(25, "A"),
+                                                ViewKey(5, "B")])
+    np.testing.assert_allclose(out[:, 0].numpy(), [0.5, 2.0, 3.0, 0.0])

@@ -34,6 +34,11 @@ class MeshConfig:
     # jump 10x further than the translation and oscillate (0.3 deg grew to 2.5 deg on the test scene).
     lr_pose_rot: float = 0.0001
     pose_warmup: float = 0.25  # fraction of the steps before pose refinement starts
+    # Before training, per-view Gauss-Newton alignment to the baked texture and depth (pavemap.mesh.pose):
+    # rounds x iterations, on at most this many pixels per view. 0 iterations: Adam's joint refinement only.
+    pose_align_iters: int = 8
+    pose_align_rounds: int = 2
+    pose_align_pixels_per_view: int = 4000
     pose_bake_every: int = 10  # with pose refinement: steps between re-bakes of the colours on the current poses
     lr_decay_final: float = 0.1  # learning rates decay exponentially to this fraction by the last step
     lr_height_decay_final: float = 0.1  # the height MLP's own decay target (1.0: constant SPEC rate)

@@ -10,6 +10,7 @@ march are refreshed every ``height_refresh_steps`` steps. Losses and weights are
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -26,6 +27,7 @@ from pavemap.mesh.bake import bake_colours
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
 from pavemap.mesh.model import RoadMesh, RoadMeshModel, build_grid, ground_under_trajectory
+from pavemap.mesh.pose import align_poses, corrected_poses, interpolate_corrections
 from pavemap.mesh.render import view_rays
 from pavemap.types import Sequence
 
@@ -38,30 +40,6 @@ def resolve_device(name: str) -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise PavemapError(f"device {name!r} requested but CUDA is not available; use --device cpu")
     return torch.device(name)
-
-
-def _so3_exp(w: torch.Tensor) -> torch.Tensor:
-    """Rodrigues: rotation vectors (V, 3) -> (V, 3, 3), smooth at 0."""
-    theta2 = (w * w).sum(-1, keepdim=True)
-    theta = torch.sqrt(theta2 + 1e-12)
-    a = torch.where(theta2 > 1e-8, torch.sin(theta) / theta, 1 - theta2 / 6)
-    b = torch.where(theta2 > 1e-8, (1 - torch.cos(theta)) / (theta2 + 1e-12), 0.5 - theta2 / 24)
-    z = torch.zeros_like(w[:, 0])
-    Kx = torch.stack([z, -w[:, 2], w[:, 1], w[:, 2], z, -w[:, 0], -w[:, 1], w[:, 0], z], -1).reshape(-1, 3, 3)
-    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(Kx)
-    return eye + a[..., None] * Kx + b[..., None] * (Kx @ Kx)
-
-
-def corrected_poses(T0: torch.Tensor, delta: torch.Tensor | None) -> torch.Tensor:
-    """Apply per-view corrections delta (V, 6) = (rotation vector, translation) in the world frame:
-    ``R = exp(w) R0``, ``t = t0 + tau``."""
-    if delta is None:
-        return T0
-    R = _so3_exp(delta[:, :3]) @ T0[:, :3, :3]
-    t = T0[:, :3, 3] + delta[:, 3:]
-    top = torch.cat([R, t[:, :, None]], dim=2)
-    bottom = T0[:, 3:, :]
-    return torch.cat([top, bottom], dim=1)
 
 
 def _plane_search(pool: PixelPool, cam_height: float, res: float, n_max: int = 60000, seed: int = 0) -> float:
@@ -183,6 +161,45 @@ def _depth_relief(pool: PixelPool, grid, traj: np.ndarray, ground_z: np.ndarray,
         relief = relief + _fine_relief(px, py, r - _sample_bins(val, px, py, cell), grid, fine_cell, fine_min,
                                        vx, vy)
     return relief.astype(np.float32)
+
+
+def _initial_surface(pool: PixelPool, grid, traj: np.ndarray, cam_h: float, cfg: MeshConfig,
+                     use_depth: bool) -> np.ndarray:
+    """(Nv,) float32 starting heights of the kept vertices: the plane ``cam_h`` under the trajectory, plus the
+    measured relief where depth exists (:func:`_depth_relief`, on the pool's poses ``pool.T``)."""
+    z = ground_under_trajectory(grid, traj[:, :2], traj[:, 2] - cam_h)
+    if cfg.init_from_depth and use_depth:
+        relief = _depth_relief(pool, grid, traj, traj[:, 2] - cam_h, cfg.init_cell_m, seed=cfg.seed,
+                               fine_cell=cfg.init_fine_cell_m, fill_sigmas=(1.0, 2.0, 4.0))
+        if relief is not None:
+            z = z + relief
+    return z
+
+
+def _align_stage(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, fill: float, grid, traj: np.ndarray,
+                 cam_h: float, use_depth: bool) -> tuple[torch.Tensor, list[dict]]:
+    """Pose refinement before training: (V, 6) corrections from :func:`align_poses` on the initial surface,
+    and per round the weighted residual cost before and after.
+
+    With depth the initial surface was binned from points cast on the raw poses (blurred by their errors),
+    so each round after the first rebuilds it on the corrected poses, and the poses align again to it.
+    """
+    delta = torch.zeros(len(pool.keys), 6, device=pool.T.device)
+    log: list[dict] = []
+    g = model.grid
+    for rnd in range(cfg.pose_align_rounds):
+        with torch.no_grad():
+            heights = model.dense(model.heights(), fill=fill).float()
+        delta, costs = align_poses(heights, model.valid_t, g.x0, g.y0, g.res, pool, delta, cfg.max_dist,
+                                   iters=cfg.pose_align_iters, per_view=cfg.pose_align_pixels_per_view,
+                                   seed=cfg.seed + rnd)
+        if costs:
+            log.append({"round": rnd + 1, "cost_first": costs[0], "cost_last": costs[-1]})
+        if use_depth and cfg.init_from_depth and rnd + 1 < cfg.pose_align_rounds:
+            moved = dataclasses.replace(pool, T=corrected_poses(pool.T, delta))
+            z = _initial_surface(moved, grid, traj, cam_h, cfg, use_depth)
+            model.z_base.copy_(torch.as_tensor(z, dtype=model.z_base.dtype, device=model.z_base.device))
+    return delta, log
 
 
 def _bin_keys(px: np.ndarray, py: np.ndarray, grid, cell: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
@@ -422,12 +439,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     cam_h = cfg.camera_height
     if cfg.init_height_search:
         cam_h = _plane_search(pool, cam_h, cfg.resolution, seed=cfg.seed)
-    z_vertices = ground_under_trajectory(grid, traj[:, :2], traj[:, 2] - cam_h)
-    if cfg.init_from_depth and use_depth:
-        relief = _depth_relief(pool, grid, traj, traj[:, 2] - cam_h, cfg.init_cell_m, seed=cfg.seed,
-                               fine_cell=cfg.init_fine_cell_m, fill_sigmas=(1.0, 2.0, 4.0))
-        if relief is not None:
-            z_vertices = z_vertices + relief
+    z_vertices = _initial_surface(pool, grid, traj, cam_h, cfg, use_depth)
     z0 = float(np.median(z_vertices))  # fill value off the crop (never used as surface)
 
     with torch.random.fork_rng(devices=[]):
@@ -437,6 +449,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     model.to(device)
 
     pose_w = pose_t = None
+    align_log: list[dict] = []
     if cfg.pose_refine:
         # Rotation (rad) and translation (m) are separate parameters in their own Adam groups: Adam moves
         # each by ~lr per step whatever the gradient's scale, and 1 mrad at the ~5-20 m where the ground is
@@ -499,8 +512,20 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         else:
             warn("checkpoint in the output folder does not match this run; starting afresh")
 
+    if pose_w is not None and cfg.pose_align_iters > 0 and start_epoch == 0:
+        delta0, align_log = _align_stage(model, pool, cfg, z0, grid, traj, cam_h, use_depth)
+        pose_w.data.copy_(delta0[:, :3])
+        pose_t.data.copy_(delta0[:, 3:])
+
+    def eval_delta() -> torch.Tensor | None:
+        """Pose corrections of the evaluation views: the training views' own, or interpolated for held-out frames."""
+        if pose_w is None:
+            return None
+        delta = torch.cat([pose_w, pose_t], 1).detach()
+        return delta if epool.keys == pool.keys else interpolate_corrections(pool.keys, delta, epool.keys)
+
     if cfg.bake_init and start_epoch == 0:
-        _bake_into(model, pool, None, cfg, z0)
+        _bake_into(model, pool, None if pose_w is None else torch.cat([pose_w, pose_t], 1).detach(), cfg, z0)
 
     n_epoch = max(1, int(round(len(pool) * min(cfg.pixel_fraction, 1.0))))
     steps_per_epoch = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
@@ -609,7 +634,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                                 psnr=f"{_psnr(sums['se'] / max(1, sums['n'])):.2f}")
         with torch.no_grad():
             heights_now = model.dense(model.heights(), fill=float(z0)).float()
-        ev = evaluate_pool(model, epool, cfg, heights_now, max_pixels=100000,
+        ev = evaluate_pool(model, epool, cfg, heights_now, delta=eval_delta(), max_pixels=100000,
                            generator=torch.Generator().manual_seed(cfg.seed + 2))
         k = max(1, steps_per_epoch)
         history.append({
@@ -637,7 +662,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     with torch.no_grad():
         heights_now = model.dense(model.heights(), fill=float(z0)).float()
     t_ev = time.perf_counter()
-    ev = evaluate_pool(model, epool, cfg, heights_now)
+    ev = evaluate_pool(model, epool, cfg, heights_now, delta=eval_delta())
     ev_s = time.perf_counter() - t_ev
     mesh = to_road_mesh(model, class_ids, use_sem)
     metrics: dict = {
@@ -653,6 +678,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     if pose_w is not None:
         with torch.no_grad():
             Tr = corrected_poses(pool.T, torch.cat([pose_w, pose_t], 1)).double().cpu().numpy()
+        metrics["pose_alignment"] = align_log
         metrics["refined_poses"] = {f"{k.frame}/{k.camera}": Tr[i].tolist() for i, k in enumerate(pool.keys)}
     if seq.root is not None and (Path(seq.root) / "truth" / "height.npy").is_file():
         truth = HeightField.from_truth(seq.root)
