@@ -35,7 +35,7 @@ def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
 @torch.no_grad()
 def bake_colours(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float, res: float,
                  pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
-                 batch: int = 262144) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 batch: int = 262144, sharpen_iters: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Weighted-mean colours of the grid vertices from the pool's pixels on a fixed surface.
 
     heights: (ny, nx) float32 dense heights; valid: (ny, nx) bool crop; T: (V, 4, 4) camera-to-world poses
@@ -44,11 +44,18 @@ def bake_colours(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: floa
     (0: no view sees it), and ``coloured`` (ny, nx) bool. Vertices without support get the normalised
     Gaussian (``fill_sigma`` cells) average of their neighbours; where even that is empty, ``coloured`` is
     False and the colour 0: the caller keeps its own value there.
+
+    ``sharpen_iters``: that many Jacobi steps towards the exact least-squares colours, ``c += (sum_p b_pk r_p)
+    / (sum_p b_pk)`` with ``r_p`` the pixel's residual on the current colours. The weighted mean blurs
+    (each pixel is spread over its triangle's three vertices); the exact solution overfits single pixels.
+    With the true surface of the nuScenes-like drive, held-out PSNR was 26.68 dB for the mean, 27.25 / 27.31
+    / 27.28 dB after 1 / 2 / 3 steps and 26.11 dB at the exact solution (LSQR).
     """
     ny, nx = heights.shape
     hf = HeightField(x0, y0, res, heights, valid)
     bounds = surface_bounds(hf, pool.uv.dtype)
     acc = torch.zeros(ny * nx, 4, dtype=torch.float64, device=heights.device)
+    cached: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (vertex ids, weights, colours) per batch
     for s in range(0, len(pool), batch):
         sl = slice(s, s + batch)
         o, d = view_rays(pool.Kinv, T, pool.view[sl], pool.uv[sl])
@@ -57,14 +64,25 @@ def bake_colours(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: floa
             continue
         hit = hits_to_rayhit(hf, o, d, cells)
         rows = cells.idx
-        vid = cells.vertex_ids(nx).reshape(-1)  # (M*3,) flat ids
-        w = hit.bary[rows].reshape(-1).double()
+        vid = cells.vertex_ids(nx)  # (M, 3) flat ids
+        w = hit.bary[rows].double()
         col = pool.rgb[sl][rows].double() / 255.0  # (M, 3)
         vals = torch.cat([col, torch.ones_like(col[:, :1])], 1)  # (M, 4): rgb and a count
-        acc.index_add_(0, vid, (vals[:, None, :].expand(-1, 3, -1).reshape(-1, 4)) * w[:, None])
-    acc = acc.reshape(ny, nx, 4)
-    support = acc[..., 3]
-    rgb = acc[..., :3] / support.clamp_min(1e-12)[..., None]
+        acc.index_add_(0, vid.reshape(-1), (vals[:, None, :] * w[..., None]).reshape(-1, 4))
+        if sharpen_iters > 0:
+            cached.append((vid, w.float(), pool.rgb[sl][rows]))
+    support = acc[:, 3]
+    rgb = acc[:, :3] / support.clamp_min(1e-12)[:, None]
+    seen = support > 0
+    for _ in range(sharpen_iters):
+        upd = torch.zeros(ny * nx, 3, dtype=torch.float64, device=heights.device)
+        for vid, w, c8 in cached:
+            r = c8.double() / 255.0 - (w.double()[..., None] * rgb[vid]).sum(1)  # (M, 3) residuals
+            upd.index_add_(0, vid.reshape(-1), (w.double()[..., None] * r[:, None, :]).reshape(-1, 3))
+        rgb = torch.where(seen[:, None], rgb + upd / support.clamp_min(1e-12)[:, None], rgb)
+    acc = torch.cat([rgb * support[:, None], support[:, None]], 1).reshape(ny, nx, 4)
+    support = support.reshape(ny, nx)
+    rgb = rgb.reshape(ny, nx, 3)
     blurred = _gaussian_blur(acc.permute(2, 0, 1), fill_sigma)
     fill_w = blurred[3]
     fill = (blurred[:3] / fill_w.clamp_min(1e-12)).permute(1, 2, 0)

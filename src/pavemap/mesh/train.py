@@ -656,7 +656,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     seen = None
     if cfg.bake_final:
         delta = None if pose_w is None else torch.cat([pose_w, pose_t], 1).detach()
-        seen = _bake_into(model, pool, delta, cfg, z0)
+        seen = _bake_into(model, pool, delta, cfg, z0, sharpen_iters=cfg.bake_sharpen_iters)
 
     # Final evaluation on all held-out pixels.
     with torch.no_grad():
@@ -703,13 +703,14 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
 
 @torch.no_grad()
 def _bake_into(model: RoadMeshModel, pool: PixelPool, delta: torch.Tensor | None, cfg: MeshConfig,
-               fill: float) -> torch.Tensor:
+               fill: float, sharpen_iters: int = 0) -> torch.Tensor:
     """Replace the model's vertex colours by the baked ones on its current surface (where any pixel
     reaches them, directly or through the gap fill). Returns (Nv,) bool: the vertices some training pixel sees."""
     g = model.grid
     heights = model.dense(model.heights(), fill=fill).float()
     rgb, support, coloured = bake_colours(heights, model.valid_t, g.x0, g.y0, g.res, pool,
-                                          corrected_poses(pool.T, delta), cfg.max_dist, cfg.bake_fill_sigma)
+                                          corrected_poses(pool.T, delta), cfg.max_dist, cfg.bake_fill_sigma,
+                                          sharpen_iters=sharpen_iters)
     flat = model.vertex_flat_ids
     ok = coloured.reshape(-1)[flat]
     model.rgb.data[ok] = rgb.reshape(-1, 3)[flat][ok].to(model.rgb.dtype)
