@@ -17,6 +17,7 @@ from pavemap.io.sequence import read_sequence
 from pavemap.mesh import MeshConfig, load_mesh, reconstruct, render_view
 from pavemap.mesh.data import split_frames
 from pavemap.mesh.model import HeightMLP, build_grid, positional_encoding
+from pavemap.synth import perturb_poses, pose_errors
 
 
 def _cfg(**kw) -> MeshConfig:
@@ -141,11 +142,6 @@ def test_sky_cameras_fail_clearly(tmp_path):
         reconstruct(seq, None, _cfg(epochs=1), progress=False)
 
 
-def _rot_err_deg(Ra, Rb):
-    c = (np.trace(Ra.T @ Rb) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
-
-
 @pytest.fixture(scope="module")
 def depth_scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("meshd") / "seq"
@@ -155,33 +151,16 @@ def depth_scene(tmp_path_factory):
 
 def test_pose_refinement_recovers_perturbation(depth_scene):
     """A known 0.3 deg / 0.2 m perturbation of every view (with LiDAR-like depth, as the synthetic world has)."""
-    rng = np.random.default_rng(3)
-    pert = copy.deepcopy(depth_scene)
-    truth = {}
-    for f in pert.frames:
-        for name, v in f.views.items():
-            truth[f"{f.index}/{name}"] = v.T_world_cam.copy()
-            axis = rng.normal(size=3)
-            axis /= np.linalg.norm(axis)
-            ang = np.radians(0.3)
-            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-            R = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
-            t = rng.normal(size=3)
-            t = 0.2 * t / np.linalg.norm(t)
-            T = v.T_world_cam.copy()
-            T[:3, :3] = R @ T[:3, :3]
-            T[:3, 3] += t
-            v.T_world_cam = T
-    cfg = _cfg(epochs=4, pixels_per_step=512, holdout_every=0, pose_refine=True, lr_pose=0.005)
+    pert, truth = perturb_poses(depth_scene, 0.3, 0.2, seed=3)
+    raw = {k: v.T_world_cam for f in pert.frames for k, v in ((f"{f.index}/{n}", v) for n, v in f.views.items())}
+    cfg = _cfg(epochs=4, pixels_per_step=512, holdout_every=0, pose_refine=True)
     _, m = reconstruct(pert, None, cfg, progress=False)
-    before = after = 0.0
-    for key, T in m["refined_poses"].items():
-        T = np.array(T)
-        T0 = truth[key]
-        Tp = pert.frame_by_index()[int(key.split("/")[0])].views[key.split("/")[1]].T_world_cam
-        before += np.linalg.norm(Tp[:3, 3] - T0[:3, 3])
-        after += np.linalg.norm(T[:3, 3] - T0[:3, 3])
-    assert after < 0.7 * before, (after, before)
+    before = pose_errors({k: raw[k] for k in m["refined_poses"]}, truth)
+    after = pose_errors(m["refined_poses"], truth)
+    assert before["trans_mean_m"] == pytest.approx(0.2) and before["rot_mean_deg"] == pytest.approx(0.3)
+    print(before, after)
+    assert after["rot_mean_deg"] < before["rot_mean_deg"], (after, before)
+    assert after["trans_mean_m"] < 0.7 * before["trans_mean_m"], (after, before)
     assert all(r["cost_last"] < r["cost_first"] for r in m["pose_alignment"])
     _, m0 = reconstruct(pert, None, _cfg(epochs=4, pixels_per_step=512, holdout_every=0), progress=False)
     assert m["psnr"] > m0["psnr"] + 3.0, (m["psnr"], m0["psnr"])

@@ -38,7 +38,10 @@ class MeshConfig:
     # rounds x iterations, on at most this many pixels per view. 0 iterations: Adam's joint refinement only.
     pose_align_iters: int = 8
     pose_align_rounds: int = 2
-    pose_align_pixels_per_view: int = 4000
+    pose_align_pixels_per_view: int = 1000
+    # How far off the raw poses may be (1 sigma, degrees and metres): the alignment's prior (align_poses).
+    pose_prior_deg: float = 0.3
+    pose_prior_m: float = 0.2
     pose_bake_every: int = 10  # with pose refinement: steps between re-bakes of the colours on the current poses
     lr_decay_final: float = 0.1  # learning rates decay exponentially to this fraction by the last step
     lr_height_decay_final: float = 0.1  # the height MLP's own decay target (1.0: constant SPEC rate)
@@ -101,7 +104,7 @@ class MeshConfig:
     def validate(self) -> None:
         """Raise PavemapError on values that cannot work."""
         positive = ("resolution", "crop_m", "render_scale", "eval_scale", "max_dist", "pixel_fraction",
-                    "bake_fill_sigma")
+                    "bake_fill_sigma", "pose_prior_deg", "pose_prior_m")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise PavemapError(f"mesh config: {name} must be positive, got {getattr(self, name)}")

@@ -192,7 +192,7 @@ def _align_stage(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, fill: f
             heights = model.dense(model.heights(), fill=fill).float()
         delta, costs = align_poses(heights, model.valid_t, g.x0, g.y0, g.res, pool, delta, cfg.max_dist,
                                    iters=cfg.pose_align_iters, per_view=cfg.pose_align_pixels_per_view,
-                                   seed=cfg.seed + rnd)
+                                   prior_sigma=(cfg.pose_prior_deg, cfg.pose_prior_m), seed=cfg.seed + rnd)
         if costs:
             log.append({"round": rnd + 1, "cost_first": costs[0], "cost_last": costs[-1]})
         if use_depth and cfg.init_from_depth and rnd + 1 < cfg.pose_align_rounds:

@@ -7,6 +7,7 @@ Public API::
     detect_sequence(seq, seed=0, out=None, config=None) -> int ; SimDetectorConfig
     load_truth_defects(seq_root) -> list[TruthDefect] ; load_truth_height(seq_root) ; load_world(seq_root)
     contact_sheet(seq_root, out_png, n_frames=3)
+    perturb_poses(seq, degrees, metres, seed) -> (seq copy, true poses) ; pose_errors(poses, truth)
 """
 
 from pavemap.synth.contact import contact_sheet
@@ -18,6 +19,7 @@ from pavemap.synth.generate import (
     synthesize,
 )
 from pavemap.synth.render import RenderOutput, render_view
+from pavemap.synth.rig import perturb_poses, pose_errors
 from pavemap.synth.simdetector import SimDetectorConfig, detect_sequence, read_detection_truth
 from pavemap.synth.world import CLASSES, World, WorldParams, make_world
 
@@ -34,6 +36,8 @@ __all__ = [
     "load_truth_height",
     "load_world",
     "make_world",
+    "perturb_poses",
+    "pose_errors",
     "read_detection_truth",
     "render_view",
     "synthesize",

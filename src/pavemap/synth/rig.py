@@ -114,3 +114,43 @@ def camera_pose(T_world_veh: np.ndarray, m: Mount) -> np.ndarray:
     U, _, Vt = np.linalg.svd(T[:3, :3])
     T[:3, :3] = U @ Vt
     return T
+
+
+def perturb_poses(seq, degrees: float = 0.3, metres: float = 0.2, seed: int = 0):
+    """A deep copy of sequence ``seq`` with every view's pose moved by a rotation of exactly ``degrees``
+    about a random axis (applied in the world frame, about the camera centre) and a translation of exactly
+    ``metres`` in a random direction; returns (copy, {"frame/camera": true 4x4 pose}).
+
+    For testing pose refinement against a known error (SPEC §1: 0.3 deg / 0.2 m).
+    """
+    import copy
+
+    rng = np.random.default_rng(seed)
+    out = copy.deepcopy(seq)
+    truth: dict[str, np.ndarray] = {}
+    ang = math.radians(degrees)
+    for f in out.frames:
+        for name, v in f.views.items():
+            truth[f"{f.index}/{name}"] = v.T_world_cam.copy()
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+            R = np.eye(3) + math.sin(ang) * K + (1 - math.cos(ang)) * K @ K
+            t = rng.normal(size=3)
+            T = v.T_world_cam.copy()
+            T[:3, :3] = R @ T[:3, :3]
+            T[:3, 3] += metres * t / np.linalg.norm(t)
+            v.T_world_cam = T
+    return out, truth
+
+
+def pose_errors(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, float]:
+    """Mean and median translation (m) and rotation (deg) errors of ``poses`` against ``truth`` (same keys)."""
+    dt, dr = [], []
+    for k, T in poses.items():
+        T, T0 = np.asarray(T, dtype=np.float64), truth[k]
+        dt.append(float(np.linalg.norm(T[:3, 3] - T0[:3, 3])))
+        c = (np.trace(T[:3, :3].T @ T0[:3, :3]) - 1) / 2
+        dr.append(float(np.degrees(np.arccos(np.clip(c, -1, 1)))))
+    return {"trans_mean_m": float(np.mean(dt)), "trans_median_m": float(np.median(dt)),
+            "rot_mean_deg": float(np.mean(dr)), "rot_median_deg": float(np.median(dr)), "views": len(dt)}
