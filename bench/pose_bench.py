@@ -40,7 +40,8 @@ def _run(seq, preset: str, device: str, refine: bool, epochs: int | None) -> dic
         cfg.epochs = epochs
     t = time.perf_counter()
     _, m = reconstruct(seq, None, cfg, progress=False)
-    out = {"seconds": round(time.perf_counter() - t, 1), "psnr_db": m["psnr"], "sem_acc": m["sem_acc"],
+    out = {"seconds": round(time.perf_counter() - t, 1), "psnr_db": m["psnr"], "train_psnr_db": m["train_psnr"],
+           "sem_acc": m["sem_acc"],
            "height_rmse_m": m.get("height_rmse"), "height_rmse_seen_m": m.get("height_rmse_seen")}
     if refine:
         out["pose_alignment"] = m["pose_alignment"]

@@ -20,7 +20,10 @@ def register(app: typer.Typer) -> None:
         preset: str = typer.Option("nuscenes", help="nuscenes (crop 7 m, L=5) or kitti (crop 5 m, L=4)."),
         render_scale: float | None = typer.Option(None, help="Training image scale (speed/accuracy)."),
         resume: bool = typer.Option(True, help="Continue from OUT/checkpoint.pt when it matches."),
-        pose_refine: bool = typer.Option(False, help="Refine a small SE(3) correction per view."),
+        pose_refine: bool = typer.Option(False, help="Refine a small SE(3) correction per view: Gauss-Newton "
+                                         "alignment to the baked texture and depth, then joint Adam steps."),
+        pose_prior_deg: float = typer.Option(0.3, help="With --pose-refine: accuracy of the raw rotations (deg)."),
+        pose_prior_m: float = typer.Option(0.2, help="With --pose-refine: accuracy of the raw positions (m)."),
         seed: int = typer.Option(0, help="Random seed."),
     ) -> None:
         """Reconstruct the road surface mesh (height, colour, semantics) from a sequence."""
@@ -31,6 +34,7 @@ def register(app: typer.Typer) -> None:
         s = read_sequence(seq)
         cfg = MeshConfig.preset(preset)
         cfg.device, cfg.resume, cfg.pose_refine, cfg.seed = device, resume, pose_refine, seed
+        cfg.pose_prior_deg, cfg.pose_prior_m = pose_prior_deg, pose_prior_m
         if epochs is not None:
             if epochs < 0:
                 raise PavemapError("--epochs must be >= 0")

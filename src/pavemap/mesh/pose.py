@@ -120,7 +120,7 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
                 prior_sigma: tuple[float, float] = (0.3, 0.2), n_eff: float = 20.0,
                 rgb_sigma: float = 0.05, depth_sigma: float = 0.03, depth_gate: float = 0.25,
                 blur_cells: tuple[float, ...] = (4.0, 4.0, 2.0, 2.0, 1.0), fill_sigma: float = 1.0,
-                gauge_length: float = 10.0, texture: torch.Tensor | None = None,
+                gauge_length: float = 10.0, texture: torch.Tensor | None = None, bake_pixels: int = 300_000,
                 seed: int = 0) -> tuple[torch.Tensor, list[float]]:
     """Refine per-view corrections ``delta`` (V, 6) on a fixed surface; returns the new corrections and the
     weighted residual cost per iteration (mean per residual, before each step).
@@ -151,14 +151,18 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
     Kinv = pool.Kinv[view]
     prior_w = torch.tensor([math.radians(prior_sigma[0]) ** -2] * 3 + [prior_sigma[1] ** -2] * 3,
                            dtype=torch.float64, device=dev)
+    # The texture is baked from a random subset of at most ``bake_pixels`` pixels: a full bake per iteration
+    # cost more than the alignment itself, and the texture is blurred by a cell or more anyway.
+    bake_pool = pool if len(pool) <= bake_pixels else pool.subset(
+        torch.randperm(len(pool), generator=gen)[:bake_pixels].to(pool.view.device))
     delta = delta.detach().clone()
     costs: list[float] = []
     for it in range(iters):
         if texture is not None:
             tex, coloured = texture, valid
         else:
-            tex, _, coloured = bake_colours(heights, valid, x0, y0, res, pool, corrected_poses(pool.T, delta),
-                                            max_dist, fill_sigma)
+            tex, _, coloured = bake_colours(heights, valid, x0, y0, res, bake_pool,
+                                            corrected_poses(pool.T, delta), max_dist, fill_sigma)
         sigma = blur_cells[min(it, len(blur_cells) - 1)] if blur_cells else 0.0
         if sigma > 0:
             w = coloured.float()

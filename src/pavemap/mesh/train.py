@@ -182,7 +182,7 @@ def _align_stage(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, fill: f
     and per round the weighted residual cost before and after.
 
     With depth the initial surface was binned from points cast on the raw poses (blurred by their errors),
-    so each round after the first rebuilds it on the corrected poses, and the poses align again to it.
+    so each round rebuilds it on the corrected poses (the next round aligns to the rebuilt one).
     """
     delta = torch.zeros(len(pool.keys), 6, device=pool.T.device)
     log: list[dict] = []
@@ -195,7 +195,7 @@ def _align_stage(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, fill: f
                                    prior_sigma=(cfg.pose_prior_deg, cfg.pose_prior_m), seed=cfg.seed + rnd)
         if costs:
             log.append({"round": rnd + 1, "cost_first": costs[0], "cost_last": costs[-1]})
-        if use_depth and cfg.init_from_depth and rnd + 1 < cfg.pose_align_rounds:
+        if use_depth and cfg.init_from_depth:
             moved = dataclasses.replace(pool, T=corrected_poses(pool.T, delta))
             z = _initial_surface(moved, grid, traj, cam_h, cfg, use_depth)
             model.z_base.copy_(torch.as_tensor(z, dtype=model.z_base.dtype, device=model.z_base.device))
@@ -664,9 +664,13 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     t_ev = time.perf_counter()
     ev = evaluate_pool(model, epool, cfg, heights_now, delta=eval_delta())
     ev_s = time.perf_counter() - t_ev
+    # The fit to the training views (on their refined poses): with pose refinement the held-out views keep
+    # their raw poses (plus interpolated corrections), so this is where aligned poses show.
+    ev_train = evaluate_pool(model, pool, cfg, heights_now, None if pose_w is None else torch.cat([pose_w, pose_t], 1),
+                             max_pixels=200000, generator=torch.Generator().manual_seed(cfg.seed + 3))
     mesh = to_road_mesh(model, class_ids, use_sem)
     metrics: dict = {
-        "psnr": ev["psnr"], "sem_acc": ev["sem_acc"] if use_sem else None,
+        "psnr": ev["psnr"], "sem_acc": ev["sem_acc"] if use_sem else None, "train_psnr": ev_train["psnr"],
         "heldout": bool(held_views), "heldout_views": len(eval_views), "train_views": len(pool.keys),
         "coverage": ev["coverage"],
         "vertices": grid.vertices, "faces": grid.faces, "grid": grid.as_dict(),
