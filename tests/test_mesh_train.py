@@ -198,25 +198,3 @@ def test_depth_samples_keep_returns_on_their_own_rays():
     # pixels without a return keep their integer centre
     empty = out == 0
     np.testing.assert_array_equal(uv[empty][:, 0], np.nonzero(empty)[1])
-
-
-def test_common_motion_removed_and_corrections_interpolated():
-    from pavemap.mesh.data import ViewKey
-    from pavemap.mesh.pose import interpolate_corrections, remove_common_motion
-
-    g = torch.Generator().manual_seed(0)
-    centres = torch.randn(12, 3, generator=g, dtype=torch.float64) * 5
-    p = centres - centres.mean(0)
-    omega, tau = torch.tensor([0.001, -0.002, 0.003], dtype=torch.float64), torch.tensor([0.1, -0.05, 0.02],
-                                                                                         dtype=torch.float64)
-    rigid = torch.cat([omega.expand(12, 3), tau + torch.cross(omega.expand(12, 3), p, dim=1)], 1)
-    own = torch.randn(12, 6, generator=g, dtype=torch.float64) * 0.01
-    own = remove_common_motion(own, centres)  # the views' own errors: no rigid part left
-    np.testing.assert_allclose(remove_common_motion(own, centres), own, atol=1e-12)
-    np.testing.assert_allclose(remove_common_motion(own + rigid, centres), own, atol=1e-10)
-    assert remove_common_motion(rigid, centres).abs().max() < 1e-12
-    keys = [ViewKey(f, "A") for f in (0, 10, 20)]
-    delta = torch.tensor([[0.0] * 6, [1.0] * 6, [3.0] * 6])
-    out = interpolate_corrections(keys, delta, [ViewKey(5, "A"), ViewKey(15, "A"), ViewKey(25, "A"),
-                                                ViewKey(5, "B")])
-    np.testing.assert_allclose(out[:, 0].numpy(), [0.5, 2.0, 3.0, 0.0])
