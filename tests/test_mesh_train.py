@@ -198,3 +198,17 @@ def test_depth_samples_keep_returns_on_their_own_rays():
     # pixels without a return keep their integer centre
     empty = out == 0
     np.testing.assert_array_equal(uv[empty][:, 0], np.nonzero(empty)[1])
+
+
+def test_ground_continues_the_grade_beyond_the_trajectory_ends():
+    from pavemap.mesh.model import idw_ground
+
+    traj = np.stack([np.linspace(0.0, 20.0, 21), np.zeros(21)], 1)
+    ground = 0.05 * traj[:, 0]  # a 5 % climb
+    beyond = np.array([[-4.0, 0.0], [-4.0, 3.0], [24.0, -1.0]])
+    at_end = np.array([[0.0, 0.0], [0.0, 3.0], [20.0, -1.0]])
+    np.testing.assert_allclose(idw_ground(traj, ground, beyond) - idw_ground(traj, ground, at_end), [-0.2, -0.2, 0.2],
+                               atol=1e-5)
+    np.testing.assert_allclose(idw_ground(traj, ground, np.array([[10.0, 0.0]])), 0.5, atol=0.02)  # inside: IDW
+    flat = idw_ground(traj[:1], ground[:1], beyond)  # one frame: nothing to extrapolate
+    np.testing.assert_allclose(flat, 0.0)

@@ -82,16 +82,36 @@ def ground_under_trajectory(grid: Grid, traj_xy: np.ndarray, ground_z: np.ndarra
     return idw_ground(traj_xy, ground_z, xy, k)
 
 
-def idw_ground(traj_xy: np.ndarray, ground_z: np.ndarray, xy: np.ndarray, k: int = 4) -> np.ndarray:
+def idw_ground(traj_xy: np.ndarray, ground_z: np.ndarray, xy: np.ndarray, k: int = 4,
+               grade_m: float = 5.0) -> np.ndarray:
     """(N,) float32 ground height under the trajectory at points ``xy`` (N, 2): inverse-distance weighting
-    of ``ground_z`` (F,) at the trajectory points ``traj_xy`` (F, 2), k nearest."""
+    of ``ground_z`` (F,) at the trajectory points ``traj_xy`` (F, 2), k nearest; beyond either end of the
+    trajectory the road's grade over its last ``grade_m`` metres continues linearly.
+
+    Why the grade: behind the first frame a forward camera never sees the ground, and holding the first
+    height there left the KITTI-like drive's start ~0.1 m off where the road climbs.
+    """
     from scipy.spatial import cKDTree
 
+    q = np.asarray(xy, dtype=np.float64).copy()
+    rise = np.zeros(len(q))
+    if len(traj_xy) >= 2:
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj_xy, axis=0), axis=1))])
+        for end, inner in ((0, int(np.searchsorted(along, min(grade_m, along[-1])))),
+                           (len(traj_xy) - 1, int(np.searchsorted(along, max(along[-1] - grade_m, 0.0))))):
+            out = traj_xy[end] - traj_xy[inner]
+            n = float(np.linalg.norm(out))
+            if inner == end or n < 1e-6:
+                continue
+            beyond = np.clip((q - traj_xy[end]) @ (out / n), 0.0, None)  # metres past this end, along the road
+            q -= beyond[:, None] * (out / n)  # the height at the end's cross-section, then the grade
+            rise += beyond * (ground_z[end] - ground_z[inner]) / n
     k = min(k, len(traj_xy))
-    dist, idx = cKDTree(traj_xy).query(xy, k=k)
-    dist, idx = dist.reshape(len(xy), k), idx.reshape(len(xy), k)
+    dist, idx = cKDTree(traj_xy).query(q, k=k)
+    dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
     w = 1.0 / np.maximum(dist, 0.5) ** 2
-    return ((w * ground_z[idx]).sum(1) / w.sum(1)).astype(np.float32)
+    z = (w * ground_z[idx]).sum(1) / w.sum(1) + rise
+    return z.astype(np.float32)
 
 
 def positional_encoding(p: torch.Tensor, levels: int) -> torch.Tensor:
