@@ -7,6 +7,7 @@ Held-out frames keep their raw perturbed poses plus the correction interpolated 
 independent errors per view that cannot fix them, so their PSNR shows the surface, not the alignment.
 
     python bench/pose_bench.py [--device cpu|cuda] [--data DIR] [--presets kitti-like,nuscenes-like]
+                               [--per view|frame] [--skip-true]
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ RESULTS = ROOT / "bench" / "results" / "pose.json"
 MESH_PRESET = {"nuscenes-like": "nuscenes", "kitti-like": "kitti"}
 
 
-def _run(seq, preset: str, device: str, refine: bool, epochs: int | None) -> dict:
+def _run(seq, preset: str, device: str, refine: bool, epochs: int | None, per: str = "view") -> dict:
     cfg = MeshConfig.preset(MESH_PRESET[preset])
-    cfg.device, cfg.resume, cfg.pose_refine = device, False, refine
+    cfg.device, cfg.resume, cfg.pose_refine, cfg.pose_per = device, False, refine, per
     cfg.threads = 1 if device == "cpu" else None
     if epochs is not None:
         cfg.epochs = epochs
@@ -49,25 +50,27 @@ def _run(seq, preset: str, device: str, refine: bool, epochs: int | None) -> dic
     return out
 
 
-def run_preset(preset: str, data: Path, device: str, epochs: int | None, seed: int) -> dict:
+def run_preset(preset: str, data: Path, device: str, epochs: int | None, seed: int, per: str = "view",
+               with_true: bool = True) -> dict:
     seq_dir = data / preset
     if not (seq_dir / "sequence.json").is_file():
         from pavemap.synth import synthesize
 
         synthesize(seq_dir, preset, seed=0, device=device, progress=False)
     seq = read_sequence(seq_dir)
-    pert, truth = perturb_poses(seq, 0.3, 0.2, seed=seed)
+    pert, truth = perturb_poses(seq, 0.3, 0.2, seed=seed, per=per)
     raw = {f"{f.index}/{n}": v.T_world_cam for f in pert.frames for n, v in f.views.items()}
-    refined = _run(pert, preset, device, True, epochs)
+    refined = _run(pert, preset, device, True, epochs, per)
     poses = refined.pop("refined_poses")
     res = {
-        "perturbation": {"degrees": 0.3, "metres": 0.2, "seed": seed},
+        "perturbation": {"degrees": 0.3, "metres": 0.2, "seed": seed, "per": per},
         "pose_errors_before": pose_errors({k: raw[k] for k in poses}, truth),
         "pose_errors_after": pose_errors(poses, truth),
         "with_refinement": refined,
         "without_refinement": _run(pert, preset, device, False, epochs),
-        "true_poses": _run(seq, preset, device, False, epochs),
     }
+    if with_true:
+        res["true_poses"] = _run(seq, preset, device, False, epochs)
     print(preset, json.dumps(res, indent=1), flush=True)
     return res
 
@@ -79,14 +82,19 @@ def main() -> None:
     ap.add_argument("--presets", default="kitti-like,nuscenes-like")
     ap.add_argument("--epochs", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--per", default="view", choices=("view", "frame"),
+                    help="perturb and refine each camera (view) or each frame's rig as one (frame)")
+    ap.add_argument("--skip-true", action="store_true", help="skip the reference run on the true poses")
     ap.add_argument("--results", type=Path, default=RESULTS)
     a = ap.parse_args()
     results = json.loads(a.results.read_text()) if a.results.is_file() else {}
     key = "cuda" if a.device.startswith("cuda") else "cpu"
-    entry = {"machine": f"{platform.machine()} {os.cpu_count()} cores, torch {torch.__version__}",
-             "date": time.strftime("%Y-%m-%d %H:%M"), "presets": {}}
+    entry = results.get(key, {"presets": {}})
+    entry.update({"machine": f"{platform.machine()} {os.cpu_count()} cores, torch {torch.__version__}",
+                  "date": time.strftime("%Y-%m-%d %H:%M")})
     for preset in a.presets.split(","):
-        entry["presets"][preset] = run_preset(preset, a.data, a.device, a.epochs, a.seed)
+        name = preset if a.per == "view" else f"{preset} (per frame)"
+        entry["presets"][name] = run_preset(preset, a.data, a.device, a.epochs, a.seed, a.per, not a.skip_true)
     results[key] = entry
     a.results.parent.mkdir(parents=True, exist_ok=True)
     tmp = a.results.with_suffix(".json.partial")

@@ -64,6 +64,9 @@ class MeshConfig:
     device: str = "auto"
     threads: int | None = None  # torch CPU threads during the run (None: leave torch's setting)
     pose_refine: bool = False
+    # "view": every image its own correction; "frame": the cameras of a frame move together (one rigid rig,
+    # the error of an ego pose; SPEC: "a small SE(3) correction per frame").
+    pose_per: str = "view"
     camera_height: float = 1.5  # initial road plane below the median camera centre (m)
     init_from_depth: bool = True  # start from the binned measured ground where depth exists (see _depth_relief)
     init_cell_m: float = 1.0  # bin size of that initial surface (m): 1 m measured best of 0.25-2 m
@@ -118,5 +121,7 @@ class MeshConfig:
                                "pose_bake_every must be >= 1")
         if not 0.0 <= self.pose_warmup <= 1.0:
             raise PavemapError(f"mesh config: pose_warmup must be in [0, 1], got {self.pose_warmup}")
+        if self.pose_per not in ("view", "frame"):
+            raise PavemapError(f"mesh config: pose_per must be view or frame, got {self.pose_per!r}")
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise PavemapError(f"mesh config: device must be auto, cpu or cuda, got {self.device!r}")

@@ -48,6 +48,31 @@ def corrected_poses(T0: torch.Tensor, delta: torch.Tensor | None) -> torch.Tenso
     return torch.cat([top, bottom], dim=1)
 
 
+def rig_corrections(delta: torch.Tensor, group: torch.Tensor, arm: torch.Tensor) -> torch.Tensor:
+    """Per-view corrections (V, 6) from per-frame ones ``delta`` (G, 6): the cameras of a frame move as one
+    rigid rig, rotating by ``w`` about the rig's centre and shifting by ``tau``. group: (V,) long frame of each
+    view; arm: (V, 3) camera centre minus its rig's centre. For :func:`corrected_poses` that is
+    ``w_v = w``, ``tau_v = tau + (exp(w) - I) arm_v``.
+    """
+    w, tau = delta[group, :3], delta[group, 3:]
+    return torch.cat([w, tau + (_so3_exp(w) @ arm[..., None]).squeeze(-1) - arm], 1)
+
+
+def rig_groups(keys: list[ViewKey], T: torch.Tensor, per: str) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Group (V,) long, arm (V, 3) and the number of groups for corrections ``per`` "view" or "frame"
+    (every camera of a frame shares one rigid correction: the error of an ego pose)."""
+    V = len(keys)
+    if per == "view":
+        return torch.arange(V, device=T.device), torch.zeros(V, 3, dtype=T.dtype, device=T.device), V
+    frames = sorted({k.frame for k in keys})
+    index = {f: i for i, f in enumerate(frames)}
+    group = torch.tensor([index[k.frame] for k in keys], dtype=torch.long, device=T.device)
+    G = len(frames)
+    centre = torch.zeros(G, 3, dtype=T.dtype, device=T.device).index_add_(0, group, T[:, :3, 3])
+    centre = centre / torch.bincount(group, minlength=G).to(T.dtype)[:, None]
+    return group, T[:, :3, 3] - centre[group], G
+
+
 def interpolate_corrections(train_keys: list[ViewKey], delta: torch.Tensor, keys: list[ViewKey]) -> torch.Tensor:
     """(len(keys), 6) corrections for other views (held-out frames): linear in the frame index between the
     nearest training frames of the same camera, the nearest one's beyond the ends, 0 for an unknown camera.
@@ -121,6 +146,7 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
                 rgb_sigma: float = 0.05, depth_sigma: float = 0.03, depth_gate: float = 0.25,
                 blur_cells: tuple[float, ...] = (4.0, 4.0, 2.0, 2.0, 1.0), fill_sigma: float = 1.0,
                 gauge_length: float = 10.0, texture: torch.Tensor | None = None, bake_pixels: int = 300_000,
+                group: torch.Tensor | None = None, arm: torch.Tensor | None = None,
                 seed: int = 0) -> tuple[torch.Tensor, list[float]]:
     """Refine per-view corrections ``delta`` (V, 6) on a fixed surface; returns the new corrections and the
     weighted residual cost per iteration (mean per residual, before each step).
@@ -137,10 +163,17 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
     of pixels: pixel residuals are model errors (texture below the grid's resolution), strongly correlated,
     and at face value thousands of them overruled any prior, so the views drifted together along modes the
     images barely see (0.2 -> 0.4 m on the KITTI-like drive with the true surface; 0.087 m with this weighting).
-    ``texture`` (ny, nx, 3): align to this fixed texture instead of baking.
+    ``texture`` (ny, nx, 3): align to this fixed texture instead of baking. With ``group``/``arm`` (see
+    :func:`rig_groups`) ``delta`` is (G, 6), one rigid correction per frame (:func:`rig_corrections`).
     """
     dev = heights.device
-    V = delta.shape[0]
+    V = len(pool.keys)
+    G = delta.shape[0]
+    if group is None or arm is None:
+        group, arm = torch.arange(V, device=dev), torch.zeros(V, 3, device=dev)
+    per_group_views = torch.bincount(group, minlength=G).double()
+    centres = torch.zeros(G, 3, dtype=torch.float64, device=dev).index_add_(
+        0, group, (pool.T[:, :3, 3] - arm).double()) / per_group_views.clamp_min(1)[:, None]
     gen = torch.Generator().manual_seed(seed)
     rows = _sample_per_view(pool.view, V, per_view, gen)
     view, uv = pool.view[rows], pool.uv[rows]
@@ -162,15 +195,16 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
             tex, coloured = texture, valid
         else:
             tex, _, coloured = bake_colours(heights, valid, x0, y0, res, bake_pool,
-                                            corrected_poses(pool.T, delta), max_dist, fill_sigma)
+                                            corrected_poses(pool.T, rig_corrections(delta, group, arm)), max_dist,
+                                            fill_sigma)
         sigma = blur_cells[min(it, len(blur_cells) - 1)] if blur_cells else 0.0
         if sigma > 0:
             w = coloured.float()
             tex = (_gaussian_blur((tex * w[..., None]).permute(2, 0, 1), sigma)
                    / _gaussian_blur(w[None], sigma).clamp_min(1e-6)).permute(1, 2, 0)
         tex = tex.reshape(-1, 3)
-        d_pix = delta[view].clone().requires_grad_(True)
-        Tp = corrected_poses(pool.T[view], d_pix)
+        d_pix = delta[group[view]].clone().requires_grad_(True)  # each pixel's own copy of its group's correction
+        Tp = corrected_poses(pool.T[view], rig_corrections(d_pix, torch.arange(view.numel(), device=dev), arm[view]))
         o = Tp[:, :3, 3]
         d = torch.einsum("nij,nj->ni", Tp[:, :3, :3] @ Kinv, torch.cat([uv, torch.ones_like(uv[:, :1])], 1))
         cells = find_hits(hf, o, d, max_dist, bounds=bounds)
@@ -191,18 +225,18 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
         r = r.detach()
         huber = torch.clamp(2.0 / r.abs().clamp_min(1e-9), max=1.0)  # Huber weights at 2 sigma
         costs.append(float((huber * r * r).sum() / max(1, r.numel())))
-        vw = view[hr]
-        n_res = torch.bincount(vw, minlength=V).double() * r.shape[1]
-        scale = (n_eff / n_res.clamp_min(1.0))[:, None]
-        H = torch.zeros(V, 6, 6, dtype=torch.float64, device=dev)
-        g = torch.zeros(V, 6, dtype=torch.float64, device=dev)
+        vw = group[view[hr]]
+        n_res = torch.bincount(vw, minlength=G).double() * r.shape[1]
+        scale = (n_eff * per_group_views / n_res.clamp_min(1.0))[:, None]
+        H = torch.zeros(G, 6, 6, dtype=torch.float64, device=dev)
+        g = torch.zeros(G, 6, dtype=torch.float64, device=dev)
         Jw = (J * huber[..., None]).double()
         H.index_add_(0, vw, torch.einsum("mci,mcj->mij", Jw, J.double()))
         g.index_add_(0, vw, torch.einsum("mci,mc->mi", Jw, r.double()))
-        H = H * scale[..., None] + torch.diag_embed(prior_w.expand(V, 6))
+        H = H * scale[..., None] + torch.diag_embed(prior_w.expand(G, 6))
         g = g * scale + prior_w * delta.double()
         step = -torch.linalg.solve(H, g.unsqueeze(-1)).squeeze(-1)
         delta = delta + step.to(delta.dtype)
         if gauge_length > 0:
-            delta = remove_common_motion(delta, pool.T[:, :3, 3], gauge_length)
+            delta = remove_common_motion(delta, centres.to(delta.dtype), gauge_length)
     return delta, costs

@@ -27,7 +27,7 @@ from pavemap.mesh.bake import bake_colours
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
 from pavemap.mesh.model import RoadMesh, RoadMeshModel, build_grid, ground_under_trajectory
-from pavemap.mesh.pose import align_poses, corrected_poses, interpolate_corrections
+from pavemap.mesh.pose import align_poses, corrected_poses, interpolate_corrections, rig_corrections, rig_groups
 from pavemap.mesh.render import view_rays
 from pavemap.types import Sequence
 
@@ -177,14 +177,15 @@ def _initial_surface(pool: PixelPool, grid, traj: np.ndarray, cam_h: float, cfg:
 
 
 def _align_stage(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, fill: float, grid, traj: np.ndarray,
-                 cam_h: float, use_depth: bool) -> tuple[torch.Tensor, list[dict]]:
+                 cam_h: float, use_depth: bool, group: torch.Tensor, arm: torch.Tensor,
+                 n_groups: int) -> tuple[torch.Tensor, list[dict]]:
     """Pose refinement before training: (V, 6) corrections from :func:`align_poses` on the initial surface,
     and per round the weighted residual cost before and after.
 
     With depth the initial surface was binned from points cast on the raw poses (blurred by their errors),
     so each round rebuilds it on the corrected poses (the next round aligns to the rebuilt one).
     """
-    delta = torch.zeros(len(pool.keys), 6, device=pool.T.device)
+    delta = torch.zeros(n_groups, 6, device=pool.T.device)
     log: list[dict] = []
     g = model.grid
     for rnd in range(cfg.pose_align_rounds):
@@ -192,11 +193,12 @@ def _align_stage(model: RoadMeshModel, pool: PixelPool, cfg: MeshConfig, fill: f
             heights = model.dense(model.heights(), fill=fill).float()
         delta, costs = align_poses(heights, model.valid_t, g.x0, g.y0, g.res, pool, delta, cfg.max_dist,
                                    iters=cfg.pose_align_iters, per_view=cfg.pose_align_pixels_per_view,
-                                   prior_sigma=(cfg.pose_prior_deg, cfg.pose_prior_m), seed=cfg.seed + rnd)
+                                   prior_sigma=(cfg.pose_prior_deg, cfg.pose_prior_m), group=group, arm=arm,
+                                   seed=cfg.seed + rnd)
         if costs:
             log.append({"round": rnd + 1, "cost_first": costs[0], "cost_last": costs[-1]})
         if use_depth and cfg.init_from_depth:
-            moved = dataclasses.replace(pool, T=corrected_poses(pool.T, delta))
+            moved = dataclasses.replace(pool, T=corrected_poses(pool.T, rig_corrections(delta, group, arm)))
             z = _initial_surface(moved, grid, traj, cam_h, cfg, use_depth)
             model.z_base.copy_(torch.as_tensor(z, dtype=model.z_base.dtype, device=model.z_base.device))
     return delta, log
@@ -450,12 +452,20 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
 
     pose_w = pose_t = None
     align_log: list[dict] = []
+    group, arm, n_groups = rig_groups(pool.keys, pool.T, cfg.pose_per)
     if cfg.pose_refine:
         # Rotation (rad) and translation (m) are separate parameters in their own Adam groups: Adam moves
         # each by ~lr per step whatever the gradient's scale, and 1 mrad at the ~5-20 m where the ground is
         # seen shifts the image as much as 5-20 mm of translation (see MeshConfig.lr_pose_rot).
-        pose_w = torch.nn.Parameter(torch.zeros(len(pool.keys), 3, device=device))
-        pose_t = torch.nn.Parameter(torch.zeros(len(pool.keys), 3, device=device))
+        pose_w = torch.nn.Parameter(torch.zeros(n_groups, 3, device=device))
+        pose_t = torch.nn.Parameter(torch.zeros(n_groups, 3, device=device))
+
+    def view_delta(detach: bool = True) -> torch.Tensor | None:
+        """(V, 6) corrections of the training views (from the per-frame ones with ``pose_per: frame``)."""
+        if pose_w is None:
+            return None
+        d = rig_corrections(torch.cat([pose_w, pose_t], 1), group, arm)
+        return d.detach() if detach else d
     groups = [{"params": list(model.height_mlp.parameters()), "lr": cfg.lr_height, "name": "height"}]
     if pose_w is not None:
         groups.append({"params": [pose_t], "lr": cfg.lr_pose, "name": "pose"})
@@ -498,7 +508,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     elapsed_before = 0.0
     gen = torch.Generator().manual_seed(cfg.seed + 1)
     if out_dir is not None and cfg.resume and (Path(out_dir) / CHECKPOINT).is_file():
-        state = load_checkpoint(Path(out_dir) / CHECKPOINT, grid, len(class_ids), len(pool.keys), device)
+        state = load_checkpoint(Path(out_dir) / CHECKPOINT, grid, len(class_ids), n_groups, device)
         if state is not None:
             model.load_state_dict(state["model"])
             opt.load_state_dict(state["opt"])
@@ -513,7 +523,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
             warn("checkpoint in the output folder does not match this run; starting afresh")
 
     if pose_w is not None and cfg.pose_align_iters > 0 and start_epoch == 0:
-        delta0, align_log = _align_stage(model, pool, cfg, z0, grid, traj, cam_h, use_depth)
+        delta0, align_log = _align_stage(model, pool, cfg, z0, grid, traj, cam_h, use_depth, group, arm, n_groups)
         pose_w.data.copy_(delta0[:, :3])
         pose_t.data.copy_(delta0[:, 3:])
 
@@ -521,11 +531,11 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
         """Pose corrections of the evaluation views: the training views' own, or interpolated for held-out frames."""
         if pose_w is None:
             return None
-        delta = torch.cat([pose_w, pose_t], 1).detach()
+        delta = view_delta()
         return delta if epool.keys == pool.keys else interpolate_corrections(pool.keys, delta, epool.keys)
 
     if cfg.bake_init and start_epoch == 0:
-        _bake_into(model, pool, None if pose_w is None else torch.cat([pose_w, pose_t], 1).detach(), cfg, z0)
+        _bake_into(model, pool, view_delta(), cfg, z0)
 
     n_epoch = max(1, int(round(len(pool) * min(cfg.pixel_fraction, 1.0))))
     steps_per_epoch = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
@@ -553,7 +563,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 # Poses align to the consensus texture of all views: re-baked on the current poses, it is the
                 # multi-view average, whereas Adam's per-vertex colours fit single pixels and leave a pose loss
                 # ~0.1 m wide (the refinement went 0.200 -> 0.196 m on the test scene; with it, ~0.1 m).
-                _bake_into(model, pool, torch.cat([pose_w, pose_t], 1).detach(), cfg, z0)
+                _bake_into(model, pool, view_delta(), cfg, z0)
             b = perm[step * cfg.pixels_per_step:(step + 1) * cfg.pixels_per_step]
             if b.numel() == 0:
                 continue
@@ -561,8 +571,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
                 # Measured depth is the strongest height signal: put those pixels first so that they fall
                 # in the ``height_pixels_per_step`` rays whose triangles get fresh MLP heights and gradients.
                 b = b[torch.sort((pool.depth[b] <= 0).to(torch.int8), stable=True).indices]
-            delta = None if pose_w is None else torch.cat([pose_w, pose_t], 1)
-            T = corrected_poses(pool.T, delta)
+            T = corrected_poses(pool.T, view_delta(detach=False))
             o, d = view_rays(pool.Kinv, T, pool.view[b], pool.uv[b])
             fw = forward_rays(model, cache, bounds, o, d, cfg.max_dist, height_rays=cfg.height_pixels_per_step)
             if fw is None:
@@ -655,7 +664,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
 
     seen = None
     if cfg.bake_final:
-        delta = None if pose_w is None else torch.cat([pose_w, pose_t], 1).detach()
+        delta = view_delta()
         seen = _bake_into(model, pool, delta, cfg, z0, sharpen_iters=cfg.bake_sharpen_iters)
 
     # Final evaluation on all held-out pixels.
@@ -666,7 +675,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     ev_s = time.perf_counter() - t_ev
     # The fit to the training views (on their refined poses): with pose refinement the held-out views keep
     # their raw poses (plus interpolated corrections), so this is where aligned poses show.
-    ev_train = evaluate_pool(model, pool, cfg, heights_now, None if pose_w is None else torch.cat([pose_w, pose_t], 1),
+    ev_train = evaluate_pool(model, pool, cfg, heights_now, view_delta(),
                              max_pixels=200000, generator=torch.Generator().manual_seed(cfg.seed + 3))
     mesh = to_road_mesh(model, class_ids, use_sem)
     metrics: dict = {
@@ -681,7 +690,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progre
     }
     if pose_w is not None:
         with torch.no_grad():
-            Tr = corrected_poses(pool.T, torch.cat([pose_w, pose_t], 1)).double().cpu().numpy()
+            Tr = corrected_poses(pool.T, view_delta()).double().cpu().numpy()
         metrics["pose_alignment"] = align_log
         metrics["refined_poses"] = {f"{k.frame}/{k.camera}": Tr[i].tolist() for i, k in enumerate(pool.keys)}
     if seq.root is not None and (Path(seq.root) / "truth" / "height.npy").is_file():

@@ -116,11 +116,13 @@ def camera_pose(T_world_veh: np.ndarray, m: Mount) -> np.ndarray:
     return T
 
 
-def perturb_poses(seq, degrees: float = 0.3, metres: float = 0.2, seed: int = 0):
+def perturb_poses(seq, degrees: float = 0.3, metres: float = 0.2, seed: int = 0, per: str = "view"):
     """A deep copy of sequence ``seq`` with every view's pose moved by a rotation of exactly ``degrees``
-    about a random axis (applied in the world frame, about the camera centre) and a translation of exactly
-    ``metres`` in a random direction; returns (copy, {"frame/camera": true 4x4 pose}).
+    about a random axis (in the world frame) and a translation of exactly ``metres`` in a random direction;
+    returns (copy, {"frame/camera": true 4x4 pose}).
 
+    ``per="view"``: each camera on its own, rotating about its centre; ``per="frame"``: the cameras of a
+    frame as one rigid rig, rotating about their mean centre (an ego-pose error).
     For testing pose refinement against a known error (SPEC §1: 0.3 deg / 0.2 m).
     """
     import copy
@@ -129,17 +131,24 @@ def perturb_poses(seq, degrees: float = 0.3, metres: float = 0.2, seed: int = 0)
     out = copy.deepcopy(seq)
     truth: dict[str, np.ndarray] = {}
     ang = math.radians(degrees)
+
+    def draw() -> tuple[np.ndarray, np.ndarray]:
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        t = rng.normal(size=3)
+        return np.eye(3) + math.sin(ang) * K + (1 - math.cos(ang)) * K @ K, metres * t / np.linalg.norm(t)
+
     for f in out.frames:
+        centre = np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], axis=0)
+        shared = draw() if per == "frame" else None
         for name, v in f.views.items():
             truth[f"{f.index}/{name}"] = v.T_world_cam.copy()
-            axis = rng.normal(size=3)
-            axis /= np.linalg.norm(axis)
-            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-            R = np.eye(3) + math.sin(ang) * K + (1 - math.cos(ang)) * K @ K
-            t = rng.normal(size=3)
+            R, t = shared if shared is not None else draw()
             T = v.T_world_cam.copy()
+            pivot = centre if per == "frame" else T[:3, 3]
             T[:3, :3] = R @ T[:3, :3]
-            T[:3, 3] += metres * t / np.linalg.norm(t)
+            T[:3, 3] = pivot + R @ (T[:3, 3] - pivot) + t
             v.T_world_cam = T
     return out, truth
 
