@@ -25,6 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from pavemap.io.atomic import atomic_write_json  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct, render_view  # noqa: E402
 
@@ -130,9 +131,7 @@ def main() -> None:
         entry["presets"][preset] = run_preset(preset, a.data, a.device, a.out, a.epochs)
     results[key] = entry
     a.results.parent.mkdir(parents=True, exist_ok=True)
-    tmp = a.results.with_suffix(".json.partial")
-    tmp.write_text(json.dumps(results, indent=2, allow_nan=False, default=lambda o: None) + "\n")
-    os.replace(tmp, a.results)
+    atomic_write_json(a.results, results)
     print(f"-> {a.results}")
 
 

@@ -24,6 +24,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from pavemap.io.atomic import atomic_write_json  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct  # noqa: E402
 from pavemap.synth import perturb_poses, pose_errors  # noqa: E402
@@ -97,9 +98,7 @@ def main() -> None:
         entry["presets"][name] = run_preset(preset, a.data, a.device, a.epochs, a.seed, a.per, not a.skip_true)
     results[key] = entry
     a.results.parent.mkdir(parents=True, exist_ok=True)
-    tmp = a.results.with_suffix(".json.partial")
-    tmp.write_text(json.dumps(results, indent=2, allow_nan=False, default=lambda o: None) + "\n")
-    os.replace(tmp, a.results)
+    atomic_write_json(a.results, results)
     print(f"-> {a.results}")
 
 

@@ -32,13 +32,18 @@ def _true_surface(seq, res: float = 0.1):
     return g, xy, z.float().reshape(g.ny, g.nx)
 
 
-def test_baked_colours_match_the_texture(seq):
-    g, xy, heights = _true_surface(seq)
+def _all_views_pool(seq):
+    """The pool of every view at full scale (no depth)."""
     lut = np.full(256, -1, dtype=np.int64)
     for ch, c in enumerate(seq.classes):
         lut[c.id] = ch
     views, _ = finite_views(seq, list(range(len(seq.frames))))
-    pool = build_pool(seq, views, 1.0, lut, True, False)
+    return build_pool(seq, views, 1.0, lut, True, False)
+
+
+def test_baked_colours_match_the_texture(seq):
+    g, xy, heights = _true_surface(seq)
+    pool = _all_views_pool(seq)
     valid = torch.from_numpy(g.valid.copy())
     rgb, support, coloured = bake_colours(heights, valid, g.x0, g.y0, g.res, pool, pool.T, 60.0)
     assert rgb.shape == (g.ny, g.nx, 3) and support.shape == (g.ny, g.nx)
@@ -142,11 +147,7 @@ def test_sharpened_bake_fits_pixels_better_and_stays_near_the_texture(seq):
     from pavemap.mesh.render import view_rays
 
     g, xy, heights = _true_surface(seq)
-    lut = np.full(256, -1, dtype=np.int64)
-    for ch, c in enumerate(seq.classes):
-        lut[c.id] = ch
-    views, _ = finite_views(seq, list(range(len(seq.frames))))
-    pool = build_pool(seq, views, 1.0, lut, True, False)
+    pool = _all_views_pool(seq)
     valid = torch.from_numpy(g.valid.copy())
     hf = HeightField(g.x0, g.y0, g.res, heights, valid)
     o, d = view_rays(pool.Kinv, pool.T, pool.view, pool.uv)
