@@ -153,7 +153,7 @@ def test_pose_refinement_recovers_perturbation(depth_scene):
     """A known 0.3 deg / 0.2 m perturbation of every view (with LiDAR-like depth, as the synthetic world has)."""
     pert, truth = perturb_poses(depth_scene, 0.3, 0.2, seed=3)
     raw = {k: v.T_world_cam for f in pert.frames for k, v in ((f"{f.index}/{n}", v) for n, v in f.views.items())}
-    cfg = _cfg(epochs=4, pixels_per_step=512, holdout_every=0, pose_refine=True)
+    cfg = _cfg(epochs=4, pixels_per_step=512, holdout_every=0, pose_refine=True, pose_per="view")
     _, m = reconstruct(pert, None, cfg, progress=False)
     before = pose_errors({k: raw[k] for k in m["refined_poses"]}, truth)
     after = pose_errors(m["refined_poses"], truth)

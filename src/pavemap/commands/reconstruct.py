@@ -22,6 +22,8 @@ def register(app: typer.Typer) -> None:
         resume: bool = typer.Option(True, help="Continue from OUT/checkpoint.pt when it matches."),
         pose_refine: bool = typer.Option(False, help="Refine a small SE(3) correction per view: Gauss-Newton "
                                          "alignment to the baked texture and depth, then joint Adam steps."),
+        pose_per: str = typer.Option("frame", help="With --pose-refine: one correction per frame (the rig moves "
+                                     "as one) or per view (each camera on its own)."),
         pose_prior_deg: float = typer.Option(0.3, help="With --pose-refine: accuracy of the raw rotations (deg)."),
         pose_prior_m: float = typer.Option(0.2, help="With --pose-refine: accuracy of the raw positions (m)."),
         seed: int = typer.Option(0, help="Random seed."),
@@ -34,7 +36,7 @@ def register(app: typer.Typer) -> None:
         s = read_sequence(seq)
         cfg = MeshConfig.preset(preset)
         cfg.device, cfg.resume, cfg.pose_refine, cfg.seed = device, resume, pose_refine, seed
-        cfg.pose_prior_deg, cfg.pose_prior_m = pose_prior_deg, pose_prior_m
+        cfg.pose_prior_deg, cfg.pose_prior_m, cfg.pose_per = pose_prior_deg, pose_prior_m, pose_per
         if epochs is not None:
             if epochs < 0:
                 raise PavemapError("--epochs must be >= 0")

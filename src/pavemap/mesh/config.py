@@ -64,9 +64,10 @@ class MeshConfig:
     device: str = "auto"
     threads: int | None = None  # torch CPU threads during the run (None: leave torch's setting)
     pose_refine: bool = False
-    # "view": every image its own correction; "frame": the cameras of a frame move together (one rigid rig,
-    # the error of an ego pose; SPEC: "a small SE(3) correction per frame").
-    pose_per: str = "view"
+    # "frame": the cameras of a frame move together (one rigid rig: the error of an ego pose; SPEC: "a small
+    # SE(3) correction per frame"); "view": every image its own correction (per-camera calibration errors).
+    # On the nuScenes-like drive per frame reached 0.10 m / 0.14 deg, per camera 0.13 m / 0.28 deg (pose.json).
+    pose_per: str = "frame"
     camera_height: float = 1.5  # initial road plane below the median camera centre (m)
     init_from_depth: bool = True  # start from the binned measured ground where depth exists (see _depth_relief)
     init_cell_m: float = 1.0  # bin size of that initial surface (m): 1 m measured best of 0.25-2 m
