@@ -229,3 +229,23 @@ def test_pose_refinement_per_frame_moves_the_rig_as_one(depth_scene):
         keys = [f"{f.index}/{n}" for n in f.views]
         Ta, Tb = np.array(m["refined_poses"][keys[0]]), np.array(m["refined_poses"][keys[1]])
         np.testing.assert_allclose(np.linalg.inv(Ta) @ Tb, np.linalg.inv(raw[keys[0]]) @ raw[keys[1]], atol=1e-4)
+
+
+def test_unmeasured_ground_takes_the_cross_section_from_along_the_road():
+    """A patch of sidewalk no point reaches (behind a parked car) gets the sidewalk's height from before and
+    after it along the road, not a blend with the road 0.12 m below."""
+    from pavemap.mesh.train import _along_track, _fill_along_track
+
+    traj = np.stack([np.linspace(0.0, 30.0, 31), np.zeros(31)], 1)
+    X, Y = np.meshgrid(np.arange(0.0, 30.0, 0.1), np.arange(-5.0, 5.0, 0.1))
+    xy = np.stack([X.reshape(-1), Y.reshape(-1)], 1)
+    truth = np.where(xy[:, 1] < -3.0, 0.12, 0.0)  # sidewalk right of the road
+    measured = ~((xy[:, 0] > 12) & (xy[:, 0] < 16) & (xy[:, 1] < -2.5))  # a car hides 4 m of curb and sidewalk
+    s, l = _along_track(traj, xy)
+    np.testing.assert_allclose(s, xy[:, 0], atol=1e-6)
+    np.testing.assert_allclose(l, xy[:, 1], atol=1e-6)
+    filled = _fill_along_track(np.where(measured, truth, 0.0), measured, s, l, sigma_s=4.0)
+    hidden = ~measured
+    err = np.abs(filled - truth)
+    away = hidden & (np.abs(xy[:, 1] + 3.0) > 0.25)  # the step itself is smoothed over +-0.1 m across
+    assert err[away].max() < 0.01 and err[hidden].mean() < 0.01, (err[away].max(), err[hidden].mean())

@@ -104,7 +104,8 @@ def _plane_search(pool: PixelPool, cam_height: float, res: float, n_max: int = 6
 
 def _depth_relief(pool: PixelPool, grid, traj: np.ndarray, ground_z: np.ndarray, cell: float,
                   gate: float = 0.5, n_max: int = 1000000, seed: int = 0, fine_cell: float = 0.0,
-                  fine_min: int = 3, fill_sigmas: tuple[float, ...] = (1.0,)) -> np.ndarray | None:
+                  fine_min: int = 3, fill_sigmas: tuple[float, ...] = (1.0,),
+                  along_sigma_m: float = 0.0) -> np.ndarray | None:
     """(Nv,) float32 relief of the measured ground relative to the trajectory plane, at the kept vertices.
 
     Why: the height MLP learns at the SPEC's lr 1e-3 (Adam moves each weight ~lr per step), and a CPU
@@ -158,8 +159,11 @@ def _depth_relief(pool: PixelPool, grid, traj: np.ndarray, ground_z: np.ndarray,
     vx, vy = (vid % grid.nx) * grid.res, (vid // grid.nx) * grid.res  # vertex offsets from the grid origin
     relief = _sample_bins(val, vx, vy, cell)
     if fine_cell and fine_cell < cell:
-        relief = relief + _fine_relief(px, py, r - _sample_bins(val, px, py, cell), grid, fine_cell, fine_min,
-                                       vx, vy)
+        fine, support = _fine_relief(px, py, r - _sample_bins(val, px, py, cell), grid, fine_cell, fine_min, vx, vy)
+        relief = relief + fine
+        if along_sigma_m > 0 and len(traj) >= 2:
+            s, l = _along_track(traj[:, :2], np.stack([vx + grid.x0, vy + grid.y0], 1))
+            relief = _fill_along_track(relief, support > 0.5, s, l, along_sigma_m)
     return relief.astype(np.float32)
 
 
@@ -170,7 +174,8 @@ def _initial_surface(pool: PixelPool, grid, traj: np.ndarray, cam_h: float, cfg:
     z = ground_under_trajectory(grid, traj[:, :2], traj[:, 2] - cam_h)
     if cfg.init_from_depth and use_depth:
         relief = _depth_relief(pool, grid, traj, traj[:, 2] - cam_h, cfg.init_cell_m, seed=cfg.seed,
-                               fine_cell=cfg.init_fine_cell_m, fill_sigmas=(1.0, 2.0, 4.0))
+                               fine_cell=cfg.init_fine_cell_m, fill_sigmas=(1.0, 2.0, 4.0),
+                               along_sigma_m=cfg.init_along_fill_m)
         if relief is not None:
             z = z + relief
     return z
@@ -246,7 +251,51 @@ def _fine_relief(px: np.ndarray, py: np.ndarray, r2: np.ndarray, grid, fine: flo
     grid_v, grid_w = grid_v.reshape(nfy, nfx), grid_w.reshape(nfy, nfx)
     w = _sample_bins(grid_w, vx, vy, fine)
     v = _sample_bins(grid_v * grid_w, vx, vy, fine)
-    return np.where(w > 1e-6, v / np.maximum(w, 1e-6), 0.0)
+    return np.where(w > 1e-6, v / np.maximum(w, 1e-6), 0.0), w
+
+
+def _along_track(traj_xy: np.ndarray, xy: np.ndarray, step: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) along-track s and signed cross-track l (m, left positive) of points ``xy`` (N, 2) relative to the
+    trajectory polyline ``traj_xy`` (F, 2), F >= 2; beyond the ends s continues along the end tangents."""
+    from scipy.spatial import cKDTree
+
+    seg = np.linalg.norm(np.diff(traj_xy, axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(seg)])
+    s_dense = np.linspace(0.0, along[-1], max(2, int(along[-1] / step) + 1))
+    c = np.stack([np.interp(s_dense, along, traj_xy[:, 0]), np.interp(s_dense, along, traj_xy[:, 1])], 1)
+    t = np.gradient(c, axis=0)
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    _, i = cKDTree(c).query(xy)
+    d = xy - c[i]
+    return s_dense[i] + (d * t[i]).sum(1), d[:, 0] * -t[i, 1] + d[:, 1] * t[i, 0]
+
+
+def _fill_along_track(relief: np.ndarray, measured: np.ndarray, s: np.ndarray, l: np.ndarray,
+                      sigma_s: float, cell_s: float = 0.5, cell_l: float = 0.1) -> np.ndarray:
+    """(Nv,) ``relief`` with the vertices not ``measured`` (Nv,) bool replaced by the normalised Gaussian
+    average of measured ones at about the same cross-track offset (sigma ``cell_l``) along the road (sigma
+    ``sigma_s`` m), where there are any.
+
+    Why: a road's cross-section (crown, gutter, curb, sidewalk) changes slowly along it, so ground a camera
+    never saw (behind a parked car, behind the first frame) is best guessed from the same offset a few metres
+    before or after; an isotropic fill mixed the road and the 0.12 m higher sidewalk there.
+    """
+    from scipy import ndimage
+
+    if measured.all() or not measured.any():
+        return relief
+    i_s = np.floor((s - s.min()) / cell_s).astype(np.int64)
+    i_l = np.floor((l - l.min()) / cell_l).astype(np.int64)
+    shape = (int(i_s.max()) + 1, int(i_l.max()) + 1)
+    key = i_s * shape[1] + i_l
+    tot = np.bincount(key[measured], weights=relief[measured], minlength=shape[0] * shape[1]).reshape(shape)
+    cnt = np.bincount(key[measured], minlength=shape[0] * shape[1]).astype(np.float64).reshape(shape)
+    sig = (sigma_s / cell_s, 1.0)
+    w = ndimage.gaussian_filter(cnt, sig, mode="constant")
+    v = ndimage.gaussian_filter(tot, sig, mode="constant") / np.maximum(w, 1e-12)
+    wv, vv = w.reshape(-1)[key], v.reshape(-1)[key]
+    fill = ~measured & (wv > 1e-3)
+    return np.where(fill, vv, relief)
 
 
 class MultiOptimizer:
