@@ -12,7 +12,6 @@ runs on a bare GPU machine with ``PYTHONPATH=src``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -25,6 +24,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from common import bench_parser  # noqa: E402
 from pavemap.io.atomic import atomic_write_json  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct, render_view  # noqa: E402
@@ -113,13 +113,8 @@ def run_preset(preset: str, data: Path, device: str, out_root: Path | None, epoc
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--data", type=Path, default=Path(os.environ.get("PAVEMAP_BENCH_DATA", "/tmp/pavemap-bench")))
-    ap.add_argument("--presets", default="nuscenes-like,kitti-like")
-    ap.add_argument("--epochs", type=int, default=None)
+    ap = bench_parser(__doc__, "nuscenes-like,kitti-like", RESULTS)
     ap.add_argument("--out", type=Path, default=None, help="where to write mesh outputs (default: none)")
-    ap.add_argument("--results", type=Path, default=RESULTS)
     a = ap.parse_args()
     results = json.loads(a.results.read_text()) if a.results.is_file() else {}
     results.setdefault("targets", TARGETS)

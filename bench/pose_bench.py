@@ -12,7 +12,6 @@ independent errors per view that cannot fix them, so their PSNR shows the surfac
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -24,6 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from common import bench_parser  # noqa: E402
 from pavemap.io.atomic import atomic_write_json  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct  # noqa: E402
@@ -77,16 +77,11 @@ def run_preset(preset: str, data: Path, device: str, epochs: int | None, seed: i
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--data", type=Path, default=Path(os.environ.get("PAVEMAP_BENCH_DATA", "/tmp/pavemap-bench")))
-    ap.add_argument("--presets", default="kitti-like,nuscenes-like")
-    ap.add_argument("--epochs", type=int, default=None)
+    ap = bench_parser(__doc__, "kitti-like,nuscenes-like", RESULTS)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--per", default="view", choices=("view", "frame"),
                     help="perturb and refine each camera (view) or each frame's rig as one (frame)")
     ap.add_argument("--skip-true", action="store_true", help="skip the reference run on the true poses")
-    ap.add_argument("--results", type=Path, default=RESULTS)
     a = ap.parse_args()
     results = json.loads(a.results.read_text()) if a.results.is_file() else {}
     key = "cuda" if a.device.startswith("cuda") else "cpu"
