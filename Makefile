@@ -30,6 +30,8 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/synth_bench.py
 	$(PY) bench/mesh_bench.py
+	$(PY) bench/pose_bench.py
+	$(PY) bench/pose_bench.py --presets nuscenes-like --per frame --skip-true
 	$(PY) bench/fusion_bench.py
 	$(PY) bench/run_bench.py
 

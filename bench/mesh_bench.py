@@ -13,8 +13,6 @@ runs on a bare GPU machine with ``PYTHONPATH=src``.
 from __future__ import annotations
 
 import json
-import os
-import platform
 import resource
 import sys
 import time
@@ -24,8 +22,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from common import bench_parser  # noqa: E402
-from pavemap.io.atomic import atomic_write_json  # noqa: E402
+from common import bench_parser, machine_entry, write_results  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct, render_view  # noqa: E402
 
@@ -120,14 +117,11 @@ def main() -> None:
     results.setdefault("targets", TARGETS)
     results.setdefault("paper", PAPER)
     key = "cuda" if a.device.startswith("cuda") else "cpu"
-    entry = {"machine": f"{platform.machine()} {os.cpu_count()} cores, torch {torch.__version__}",
-             "date": time.strftime("%Y-%m-%d %H:%M"), "presets": {}}
+    entry = {**machine_entry(), "presets": {}}
     for preset in a.presets.split(","):
         entry["presets"][preset] = run_preset(preset, a.data, a.device, a.out, a.epochs)
     results[key] = entry
-    a.results.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(a.results, results)
-    print(f"-> {a.results}")
+    write_results(a.results, results)
 
 
 if __name__ == "__main__":

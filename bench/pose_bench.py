@@ -13,18 +13,13 @@ independent errors per view that cannot fix them, so their PSNR shows the surfac
 from __future__ import annotations
 
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from common import bench_parser  # noqa: E402
-from pavemap.io.atomic import atomic_write_json  # noqa: E402
+from common import bench_parser, machine_entry, write_results  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct  # noqa: E402
 from pavemap.synth import perturb_poses, pose_errors  # noqa: E402
@@ -86,15 +81,12 @@ def main() -> None:
     results = json.loads(a.results.read_text()) if a.results.is_file() else {}
     key = "cuda" if a.device.startswith("cuda") else "cpu"
     entry = results.get(key, {"presets": {}})
-    entry.update({"machine": f"{platform.machine()} {os.cpu_count()} cores, torch {torch.__version__}",
-                  "date": time.strftime("%Y-%m-%d %H:%M")})
+    entry.update(machine_entry())
     for preset in a.presets.split(","):
         name = preset if a.per == "view" else f"{preset} (per frame)"
         entry["presets"][name] = run_preset(preset, a.data, a.device, a.epochs, a.seed, a.per, not a.skip_true)
     results[key] = entry
-    a.results.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(a.results, results)
-    print(f"-> {a.results}")
+    write_results(a.results, results)
 
 
 if __name__ == "__main__":
