@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 
 from pavemap.geometry import HeightField, intersect_rays, pixel_grid, pixel_rays
-from pavemap.io.sequence import save_depth, write_sequence
+from pavemap.io.sequence import read_sequence, save_depth, write_sequence
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 CLASSES = [
@@ -126,3 +126,9 @@ def make_scene(root: Path, frames: int = 8, width: int = 64, height: int = 40, s
     (root / "truth" / "height.json").write_text(json.dumps(
         {"x_min": truth.x0, "y_min": truth.y0, "resolution": truth.res, "shape": [truth.ny, truth.nx]}))
     return seq
+
+
+def read_scene(root: Path, **kw) -> Sequence:
+    """:func:`make_scene` at ``root``, read back from disk (what a run sees)."""
+    make_scene(root, **kw)
+    return read_sequence(root)

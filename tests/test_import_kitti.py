@@ -140,8 +140,8 @@ def test_bare_calib_variants(tmp_path, style):
         np.testing.assert_allclose(calib.Tr, TR, atol=1e-9)
         s = import_kitti(root, "00", tmp_path / "seq", camera=2)
         depth_rel = s.frames[0].views["cam2"].depth
-        assert depth_rel is not None
-        assert (load_depth(s.root / depth_rel) > 0).any(), "velodyne points must land in the depth map"
+        assert depth_rel is not None and (load_depth(s.root / depth_rel) > 0).any(), \
+            "velodyne points must land in the depth map"
     else:
         s = import_kitti(root, "00", tmp_path / "seq", camera=0)
         with pytest.raises(SequenceError, match="no P2"):

@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from mesh_scene import make_scene, texture, truth_field
+from mesh_scene import read_scene, texture, truth_field
 from pavemap.geometry import HeightField
-from pavemap.io.sequence import read_sequence
 from pavemap.mesh import MeshConfig, reconstruct
 from pavemap.mesh.bake import bake_colours
 from pavemap.mesh.data import build_pool, finite_views
@@ -17,9 +16,7 @@ from pavemap.mesh.model import build_grid
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory):
-    root = tmp_path_factory.mktemp("bake") / "seq"
-    make_scene(root, frames=6, width=64, height=40)
-    return read_sequence(root)
+    return read_scene(tmp_path_factory.mktemp("bake") / "seq", frames=6, width=64, height=40)
 
 
 def _true_surface(seq, res: float = 0.1):
@@ -110,7 +107,7 @@ def test_depth_relief_keeps_the_curb_and_ignores_objects(tmp_path):
     from pavemap.mesh.model import ground_under_trajectory
     from pavemap.mesh.train import _depth_relief
 
-    seq = read_sequence(make_scene(tmp_path / "d", frames=6, width=64, height=40, depth_every=1).root)
+    seq = read_scene(tmp_path / "d", frames=6, width=64, height=40, depth_every=1)
     lut = np.full(256, -1, dtype=np.int64)
     for ch, c in enumerate(seq.classes):
         lut[c.id] = ch

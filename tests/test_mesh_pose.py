@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from mesh_scene import make_scene, texture, truth_field
-from pavemap.io.sequence import read_sequence
+from mesh_scene import read_scene, texture, truth_field
 from pavemap.mesh.data import build_pool, finite_views
 from pavemap.mesh.model import build_grid
 from pavemap.mesh.pose import align_poses, corrected_poses
@@ -17,9 +16,7 @@ from pavemap.synth import perturb_poses, pose_errors
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory):
-    root = tmp_path_factory.mktemp("pose") / "seq"
-    make_scene(root, frames=6, width=64, height=40, depth_every=2)
-    return read_sequence(root)
+    return read_scene(tmp_path_factory.mktemp("pose") / "seq", frames=6, width=64, height=40, depth_every=2)
 
 
 def test_alignment_to_the_true_surface_and_texture_recovers_the_poses(seq):

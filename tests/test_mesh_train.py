@@ -11,9 +11,8 @@ import pytest
 import torch
 import trimesh
 
-from mesh_scene import look, make_scene
+from mesh_scene import look, make_scene, read_scene
 from pavemap.errors import PavemapError
-from pavemap.io.sequence import read_sequence
 from pavemap.mesh import MeshConfig, load_mesh, reconstruct, render_view
 from pavemap.mesh.data import split_frames
 from pavemap.mesh.model import HeightMLP, build_grid, positional_encoding
@@ -29,9 +28,7 @@ def _cfg(**kw) -> MeshConfig:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("mesh") / "seq"
-    make_scene(root, frames=6, width=48, height=32)
-    return read_sequence(root)
+    return read_scene(tmp_path_factory.mktemp("mesh") / "seq", frames=6, width=48, height=32)
 
 
 def test_grid_crop_counts():
@@ -144,9 +141,7 @@ def test_sky_cameras_fail_clearly(tmp_path):
 
 @pytest.fixture(scope="module")
 def depth_scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("meshd") / "seq"
-    make_scene(root, frames=6, width=48, height=32, depth_every=2)
-    return read_sequence(root)
+    return read_scene(tmp_path_factory.mktemp("meshd") / "seq", frames=6, width=48, height=32, depth_every=2)
 
 
 def test_pose_refinement_recovers_perturbation(depth_scene):

@@ -161,7 +161,8 @@ def _depth_relief(pool: PixelPool, grid, traj: np.ndarray, ground_z: np.ndarray,
     if fine_cell and fine_cell < cell:
         fine, support = _fine_relief(px, py, r - _sample_bins(val, px, py, cell), grid, fine_cell, fine_min, vx, vy)
         relief = relief + fine
-        if along_sigma_m > 0 and len(traj) >= 2:
+        # a standing vehicle has no "along the road": the isotropic fill stays
+        if along_sigma_m > 0 and np.linalg.norm(np.diff(traj[:, :2], axis=0), axis=1).sum() > 2 * cell:
             s, l = _along_track(traj[:, :2], np.stack([vx + grid.x0, vy + grid.y0], 1))
             relief = _fill_along_track(relief, support > 0.5, s, l, along_sigma_m)
     return relief.astype(np.float32)

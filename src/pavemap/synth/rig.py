@@ -127,6 +127,8 @@ def perturb_poses(seq, degrees: float = 0.3, metres: float = 0.2, seed: int = 0,
     """
     import copy
 
+    if per not in ("view", "frame"):
+        raise ValueError(f"perturb_poses: per must be 'view' or 'frame', got {per!r}")
     rng = np.random.default_rng(seed)
     out = copy.deepcopy(seq)
     truth: dict[str, np.ndarray] = {}
