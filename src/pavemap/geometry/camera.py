@@ -33,20 +33,31 @@ def pixel_grid(width: int, height: int, device: torch.device | str = "cpu",
 def pixel_rays(
     K: np.ndarray | torch.Tensor, T_world_cam: np.ndarray | torch.Tensor, pixels: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays through pixels.
+    """Rays through pixels: the project's one pixel-ray function.
 
-    pixels: (N, 2) ``(u, v)``. Returns origins (N, 3) (the camera centre) and directions (N, 3)
-    ``d = R K^-1 [u, v, 1]`` (not normalised: the ray parameter of a point is its camera depth).
+    K: (3, 3) or (N, 3, 3); T_world_cam: (4, 4) or (N, 4, 4) camera-to-world; pixels: (N, 2) ``(u, v)``.
+    Returns origins (N, 3) (the camera centres) and directions (N, 3) ``d = R K^-1 [u, v, 1]``
+    (not normalised: the ray parameter of a point is its camera depth). A batched K / T gives
+    each pixel its own camera, so detections of many views go through in one call.
     """
     K_t = as_tensor(K, pixels)
     T = as_tensor(T_world_cam, pixels)
-    fx, fy, cx, cy, s = K_t[0, 0], K_t[1, 1], K_t[0, 2], K_t[1, 2], K_t[0, 1]
-    # K^-1 of an upper-triangular pinhole matrix in closed form (cheaper than a solve per pixel).
+    if K_t.shape[-2:] != (3, 3) or T.shape[-2:] != (4, 4):
+        raise ValueError(f"pixel_rays: K must be (..., 3, 3) and T (..., 4, 4), got {tuple(K_t.shape)}, "
+                         f"{tuple(T.shape)}")
+    if pixels.ndim != 2 or pixels.shape[1] != 2:
+        raise ValueError(f"pixel_rays: pixels must be (N, 2), got {tuple(pixels.shape)}")
+    fx, fy, cx, cy, s = K_t[..., 0, 0], K_t[..., 1, 1], K_t[..., 0, 2], K_t[..., 1, 2], K_t[..., 0, 1]
+    # K^-1 of an upper-triangular pinhole matrix in closed form (a batched solve is ~50x slower).
     y = (pixels[:, 1] - cy) / fy
     x = (pixels[:, 0] - cx - s * y) / fx
     d_cam = torch.stack([x, y, torch.ones_like(x)], dim=1)
-    dirs = d_cam @ T[:3, :3].T
-    origins = T[:3, 3].expand_as(dirs)
+    if T.ndim == 2:
+        dirs = d_cam @ T[:3, :3].T
+        origins = T[:3, 3].expand_as(dirs)
+    else:
+        dirs = (T[:, :3, :3] @ d_cam.unsqueeze(-1)).squeeze(-1)
+        origins = T[:, :3, 3]
     return origins, dirs
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from pavemap.errors import SequenceError
 from pavemap.io.atomic import atomic_write_json
 from pavemap.types import (
     NUM_DEFECT_CLASSES,
@@ -31,14 +32,7 @@ FORMAT = "pavemap-sequence/1"
 SEQUENCE_FILE = "sequence.json"
 DETECTIONS_FILE = "detections.jsonl"
 
-
-class SequenceError(ValueError):
-    """A problem with a sequence folder; the message names the file and the problem."""
-
-    def __init__(self, file: str | os.PathLike, problem: str):
-        self.file = str(file)
-        self.problem = problem
-        super().__init__(f"{self.file}: {problem}")
+__all__ = ["SequenceError"]  # re-exported: its home is pavemap.errors
 
 
 @dataclass(frozen=True)
