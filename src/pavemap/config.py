@@ -94,6 +94,19 @@ def preset_config(name: str) -> RunConfig:
     )
 
 
+def preset_for(seq: object) -> tuple[str, str]:
+    """The preset that fits a sequence's rig, and why: one camera → ``kitti``, a surround rig → ``nuscenes``.
+
+    The paper's two parameter sets differ by rig (crop 5 m vs 7 m, L = 4 vs 5, τ_conf 0.10 vs 0.05), so
+    a front-camera drive run with the surround preset would silently get the wider crop.
+    """
+    cams = getattr(seq, "cameras", {}) or {}
+    n = len(cams)
+    if n <= 1:
+        return "kitti", f"{n} camera: a single front camera, so the kitti preset"
+    return "nuscenes", f"{n} cameras: a surround rig, so the nuscenes preset"
+
+
 def _unknown_key(key: str, valid: typing.Iterable[str], where: str, file: str) -> PavemapError:
     valid = sorted(valid)
     near = difflib.get_close_matches(key, valid, n=1, cutoff=0.5)
