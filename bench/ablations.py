@@ -17,11 +17,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from fusion_bench import PRESETS, run_row, scene, try_mesh  # noqa: E402
-from pavemap.fuse import FusionConfig  # noqa: E402
-from pavemap.geometry import HeightField  # noqa: E402
+from fusion_bench import PRESETS, configs, run_row, scene, try_mesh  # noqa: E402
 from pavemap.io.atomic import atomic_write_json  # noqa: E402
 from pavemap.io.sequence import read_detections, read_sequence  # noqa: E402
+from pavemap.io.truth import read_truth_height  # noqa: E402
 
 SWEEPS = {
     "tau_road": [0.3, 0.5, 0.7],
@@ -45,14 +44,15 @@ def main(argv: list[str] | None = None) -> int:
     root = scene(args.work, args.preset, args.frames, scale)
     seq = read_sequence(root)
     dets = read_detections(root / "detections.jsonl")
-    surface = HeightField.from_truth(root)
-    base = FusionConfig.preset(fpreset)
-    out: dict = {"scene": root.name, "surface": "truth", "defaults": dataclasses.asdict(base), "sweeps": {}}
+    surface = read_truth_height(root)
+    base_filter, base = configs(fpreset)
+    out: dict = {"scene": root.name, "surface": "truth", "sweeps": {},
+                 "defaults": {**dataclasses.asdict(base_filter), **dataclasses.asdict(base)}}
     for name, values in SWEEPS.items():
         rows = []
         for v in values:
-            cfg = dataclasses.replace(base, **{name: v})
-            row = run_row(seq, dets, surface, cfg, root)
+            filt, cfg = configs(fpreset, **{name: v})
+            row = run_row(seq, dets, surface, cfg, root, filt=filt)
             row[name] = v
             rows.append(row)
             print(f"[ablation] {name}={v}: F1 {row['truth']['f1']:.3f} FR {row['paper']['filter_rate']:.3f} "
@@ -65,9 +65,9 @@ def main(argv: list[str] | None = None) -> int:
         for mask in ("frame", "mesh", "both"):
             if mask != "frame" and mesh is None:
                 continue
-            cfg = dataclasses.replace(base, association=assoc, mask=mask)
+            filt, cfg = configs(fpreset, association=assoc, mask=mask)
             surf = mesh.surface if mesh is not None else surface
-            row = run_row(seq, dets, surf, cfg, root, mesh=mesh)
+            row = run_row(seq, dets, surf, cfg, root, mesh=mesh, filt=filt)
             row["surface"] = "mesh" if mesh is not None else "truth"
             rows.append(row)
             print(f"[ablation] {assoc}/{mask}: F1 {row['truth']['f1']:.3f} MSR {row['paper']['msr']:.3f}", flush=True)

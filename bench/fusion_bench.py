@@ -2,7 +2,7 @@
 
 For the nuscenes-like (6 cameras) and kitti-like (1 camera) presets: synthesise a drive, run the
 simulated detector at its default noise, then filter + fuse with every association mode on the
-true surface (``HeightField.from_truth``) and, when stage 1 runs, on the reconstructed mesh (also
+true surface (``pavemap.io.truth.read_truth_height``) and, when stage 1 runs, on the reconstructed mesh (also
 with the ``mesh`` and ``both`` road masks). Each row holds the paper's statistics (SPEC §4), the
 ground-truth scores (SPEC §5) and the single-frame baseline, plus the fusion time on this CPU.
 
@@ -15,6 +15,7 @@ Scenes are cached under ``--work`` (rerunning reuses them).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import sys
@@ -24,11 +25,12 @@ from pathlib import Path
 
 import torch
 
+from pavemap.detect.config import FilterConfig
 from pavemap.evaluate import evaluate
-from pavemap.fuse import FusionConfig, fuse
-from pavemap.geometry import HeightField
+from pavemap.fuse import FusionConfig
 from pavemap.io.atomic import atomic_write_json
 from pavemap.io.sequence import read_detections, read_sequence
+from pavemap.io.truth import read_truth_height
 
 PRESETS = {"nuscenes-like": ("nuscenes", 0.25), "kitti-like": ("kitti", 1.0)}  # fusion preset, render scale
 TARGETS = {"msr_best_mode": 0.95, "f1": 0.85, "median_error_m": 0.2, "fp_removed": 0.90, "tp_lost": 0.05,
@@ -56,10 +58,27 @@ def scene(work: Path, preset: str, frames: int, scale: float, seed: int = 0) -> 
     return root
 
 
-def run_row(seq, dets, surface, cfg: FusionConfig, root: Path, mesh=None) -> dict:  # noqa: ANN001
-    """One fusion run: paper metrics + GT scores + baseline + seconds."""
+def configs(preset: str, **changes: object) -> tuple[FilterConfig, FusionConfig]:
+    """The preset's filter and fusion settings, each change applied to the section that holds the field."""
+    filt, fus = FilterConfig.preset(preset), FusionConfig.preset(preset)
+    for name, value in changes.items():
+        target = filt if name in {f.name for f in dataclasses.fields(FilterConfig)} else fus
+        if not hasattr(target, name):
+            raise KeyError(f"{name}: neither a filter nor a fusion setting")
+        setattr(target, name, value)
+    filt.validate()
+    fus.validate()
+    return filt, fus
+
+
+def run_row(seq, dets, surface, cfg: FusionConfig, root: Path, mesh=None,  # noqa: ANN001
+            filt: FilterConfig | None = None) -> dict:
+    """One filter + fusion run (filter: the default one unless given): paper metrics + GT scores + baseline."""
+    from pavemap.pipeline import filter_and_fuse
+
+    filt = filt if filt is not None else FilterConfig()
     t = time.perf_counter()
-    res = fuse(seq, dets, surface, cfg, mesh=mesh, progress=False)
+    res = filter_and_fuse(seq, dets, surface, filt, cfg, mesh=mesh, progress=False)
     seconds = time.perf_counter() - t
     ev = evaluate(res, root)
     b = ev["baseline"]
@@ -109,12 +128,11 @@ def main(argv: list[str] | None = None) -> int:
         root = scene(args.work, preset, args.frames, scale)
         seq = read_sequence(root)
         dets = read_detections(root / "detections.jsonl")
-        truth_surface = HeightField.from_truth(root)
+        truth_surface = read_truth_height(root)
         rows = []
         for assoc in ("ray", "hit", "footprint"):
-            cfg = FusionConfig.preset(fpreset)
-            cfg.association = assoc
-            row = run_row(seq, dets, truth_surface, cfg, root)
+            filt, cfg = configs(fpreset, association=assoc)
+            row = run_row(seq, dets, truth_surface, cfg, root, filt=filt)
             row["surface"] = "truth"
             rows.append(row)
             print(f"[bench] {preset} truth {assoc}: {json.dumps(row['truth'])} msr {row['paper']['msr']:.3f} "
@@ -125,9 +143,8 @@ def main(argv: list[str] | None = None) -> int:
             if mesh is not None:
                 for assoc, mask in (("ray", "frame"), ("hit", "frame"), ("footprint", "frame"), ("hit", "mesh"),
                                     ("hit", "both")):
-                    cfg = FusionConfig.preset(fpreset)
-                    cfg.association, cfg.mask = assoc, mask
-                    row = run_row(seq, dets, mesh.surface, cfg, root, mesh=mesh)
+                    filt, cfg = configs(fpreset, association=assoc, mask=mask)
+                    row = run_row(seq, dets, mesh.surface, cfg, root, mesh=mesh, filt=filt)
                     row["surface"] = "mesh"
                     rows.append(row)
                     print(f"[bench] {preset} mesh {assoc}/{mask}: {json.dumps(row['truth'])} "

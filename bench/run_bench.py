@@ -18,6 +18,10 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).parent))
+
+from common import write_results  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 WORK = ROOT / "bench" / "work"
 OUT = ROOT / "bench" / "results" / "run.json"
@@ -73,7 +77,6 @@ def main() -> None:
         rec["wall_seconds"] = time.perf_counter() - t
         results[preset] = rec
         print(preset, json.dumps(rec["stage_seconds"]), f"peak {rec['peak_rss_mb']:.0f} MB")
-    OUT.parent.mkdir(parents=True, exist_ok=True)
     doc = {
         "benchmark": "pavemap run end to end (simulated detector)",
         "machine": {"cpu_count": __import__("os").cpu_count(), "platform": platform.platform(),
@@ -83,8 +86,7 @@ def main() -> None:
         "results": results,
         "children_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
     }
-    OUT.write_text(json.dumps(doc, indent=2) + "\n")
-    print(f"wrote {OUT}")
+    write_results(OUT, doc)
 
 
 if __name__ == "__main__":

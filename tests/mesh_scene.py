@@ -6,7 +6,6 @@ continuous function of world x, y (not vertex colours), so the mesh must actuall
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ from PIL import Image
 
 from pavemap.geometry import HeightField, intersect_rays, pixel_grid, pixel_rays
 from pavemap.io.sequence import read_sequence, save_depth, write_sequence
+from pavemap.io.truth import write_truth_height
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 CLASSES = [
@@ -121,10 +121,7 @@ def make_scene(root: Path, frames: int = 8, width: int = 64, height: int = 40, s
         seq_frames.append(Frame(f, f * 0.1, views))
     seq = Sequence("tiny-mesh", list(CLASSES), cameras, seq_frames, None, root)
     write_sequence(seq, root)
-    (root / "truth").mkdir(exist_ok=True)
-    np.save(root / "truth" / "height.npy", truth.heights.numpy().astype(np.float32))
-    (root / "truth" / "height.json").write_text(json.dumps(
-        {"x_min": truth.x0, "y_min": truth.y0, "resolution": truth.res, "shape": [truth.ny, truth.nx]}))
+    write_truth_height(root, truth.heights.numpy(), truth.grid)
     return seq
 
 

@@ -10,9 +10,9 @@ from shapely.geometry import box, mapping
 
 from pavemap.evaluate import evaluate, match
 from pavemap.evaluate.gt import detection_scores, visible_defects
-from pavemap.fuse import FusionConfig, fuse, write_fusion
+from pavemap.export.run_files import write_fusion_outputs
 from pavemap.geometry import HeightField
-from test_fuse import DEFECTS, detections_for, make_seq
+from test_fuse import DEFECTS, detections_for, make_seq, run_fusion
 
 
 def sq(x: float, y: float, h: float = 0.2):  # noqa: ANN201
@@ -60,8 +60,8 @@ def test_evaluate_run_folder(tmp_path) -> None:  # noqa: ANN001
     # A fourth true defect the detector never saw: not visible, so it does not hurt recall.
     _write_truth(tmp_path, DEFECTS + [((16.0, 0.0), 1)], lines)
     plane = HeightField.plane(0.0, -5.0, 0.1, 251, 101)
-    res = fuse(seq, dets, plane, FusionConfig(), progress=False)
-    write_fusion(res, tmp_path / "run")
+    res = run_fusion(seq, dets, plane)
+    write_fusion_outputs(tmp_path / "run", res)
     ev = evaluate(tmp_path / "run", tmp_path)
     ev_mem = evaluate(res, tmp_path)  # the in-memory result scores the same as the written folder
     for k in ("precision", "recall", "median_error_m"):
@@ -83,6 +83,6 @@ def test_evaluate_without_truth_side_file(tmp_path) -> None:  # noqa: ANN001
     dets = detections_for(seq)
     _write_truth(tmp_path, DEFECTS, [])
     (tmp_path / "truth" / "detections_truth.jsonl").unlink()
-    res = fuse(seq, dets, HeightField.plane(0.0, -5.0, 0.1, 251, 101), FusionConfig(), progress=False)
+    res = run_fusion(seq, dets, HeightField.plane(0.0, -5.0, 0.1, 251, 101))
     ev = evaluate(res, tmp_path)
     assert ev["fp_removed"] is None and ev["recall"] == 1.0 and "no truth" in ev["truth_detections_source"]

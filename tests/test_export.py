@@ -20,6 +20,7 @@ from pavemap.export.geotiff import BAND_DESCRIPTIONS, write_geotiff
 from pavemap.export.report import build_report_html
 from pavemap.export.sample import sample_inputs
 from pavemap.export.tables import CSV_COLUMNS, write_csv
+from pavemap.geometry.grid import GridSpec
 from pavemap.types import DefectInstance, GeoOrigin
 
 GEOD = Geod(ellps="WGS84")
@@ -133,7 +134,7 @@ def _maps(H=40, W=60, peak=(10, 45)):
 
 def test_geotiff_local_north_up(tmp_path):
     prob, cls = _maps()
-    grid = {"x0": -3.0, "y0": 5.0, "res": 0.2, "shape": [40, 60]}
+    grid = GridSpec(-3.0, 5.0, 0.2, nx=60, ny=40)
     p = write_geotiff(tmp_path / "m.tif", prob, cls, grid)
     with rasterio.open(p) as ds:
         assert ds.count == 5 and ds.crs is None
@@ -152,7 +153,7 @@ def test_geotiff_local_north_up(tmp_path):
 @pytest.mark.parametrize("heading", [90.0, 30.0])
 def test_geotiff_georeferenced(tmp_path, heading):
     prob, cls = _maps(peak=(20, 30))
-    grid = {"x0": 10.0, "y0": -4.0, "res": 0.25, "shape": [40, 60]}
+    grid = GridSpec(10.0, -4.0, 0.25, nx=60, ny=40)
     origin = GeoOrigin(ORIGIN.lat, ORIGIN.lon, heading_deg=heading)
     p = write_geotiff(tmp_path / "g.tif", prob, cls, grid, origin)
     wx, wy = 10.0 + 30 * 0.25, -4.0 + 20 * 0.25
@@ -174,7 +175,12 @@ def test_geotiff_georeferenced(tmp_path, heading):
 def test_geotiff_shape_mismatch(tmp_path):
     prob, cls = _maps()
     with pytest.raises(PavemapError, match="grid"):
+        write_geotiff(tmp_path / "x.tif", prob, cls, GridSpec(0, 0, 0.1, 10, 10))
+    # a grid read back from a file (GridSpec.to_dict, or an older file's keys) is checked the same way
+    with pytest.raises(PavemapError, match="BEV map grid"):
         write_geotiff(tmp_path / "x.tif", prob, cls, {"x0": 0, "y0": 0, "res": 0.1, "shape": [10, 10]})
+    with pytest.raises(PavemapError, match="res > 0"):
+        write_geotiff(tmp_path / "x.tif", prob, cls, {"x0": 0, "y0": 0, "res": 0.0, "nx": 60, "ny": 40})
     assert not list(tmp_path.iterdir())
 
 
@@ -255,7 +261,7 @@ def test_write_outputs_bad_input(tmp_path):
 
 def test_write_outputs_no_defects_no_bev(tmp_path):
     """A run where everything was filtered: every file is still written and the report says so."""
-    grid = {"x0": 0.0, "y0": 0.0, "res": 0.1, "shape": [30, 50]}
+    grid = GridSpec(0.0, 0.0, 0.1, nx=50, ny=30)
     dets = [{"frame": 3, "camera": "CAM_FRONT", "box": [10, 10, 40, 30], "cls": 3, "conf": 0.4, "kept": False,
              "reason": "off road", "r_road": 0.1, "mapped": False}]
     paths = write_outputs(tmp_path, [], np.zeros((30, 50), np.float32), np.zeros((4, 30, 50), np.float32), grid,

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from pavemap.detect import box_ratio, filter_detections, load_detections, sanitize
-from pavemap.fuse import FusionConfig
+from pavemap.detect.config import FilterConfig
 from pavemap.types import Camera, Detection, Frame, SemanticClass, Sequence, View
 
 W, H = 80, 60
@@ -72,7 +72,8 @@ def test_sanitize_reasons_and_warning(tmp_path, caplog) -> None:  # noqa: ANN001
                        "unknown_cls", "bad_conf", "bad_conf", "bad_box", "ok"]
     assert clean[-1].box == (0.0, 50.0, 30.0, 60.0)
     with caplog.at_level(logging.WARNING, logger="pavemap"):
-        kept, recs = filter_detections(seq, dets, FusionConfig(tau_conf=0.05))
+        res = filter_detections(seq, dets, FilterConfig(tau_conf=0.05))
+    kept, recs = res.kept, res.records
     assert len(kept) == 2 and [r["kept"] for r in recs].count(True) == 2
     assert "skipped 9 unusable detection(s)" in caplog.text and "#1 frame 7" in caplog.text
     assert "no semantic map" in caplog.text  # fallback: no mask, not filtered, but said so
@@ -96,10 +97,10 @@ def test_frame_filter_and_conf(tmp_path) -> None:  # noqa: ANN001
         Detection(0, "cam", (10, 35, 30, 55), 0, 0.04),  # below tau_conf
         Detection(0, "cam", (10, 20, 30, 38), 0, 0.5),   # rows 20..38, road from 30: R = 9/19
     ]
-    kept, recs = filter_detections(seq, dets, FusionConfig(tau_conf=0.05, tau_road=0.5))
+    recs = filter_detections(seq, dets, FilterConfig(tau_conf=0.05, tau_road=0.5)).records
     assert [r["reason"] for r in recs] == ["kept", "off_road", "kept", "off_road", "low_conf", "off_road"]
     assert recs[0]["r_road"] == 1.0 and recs[1]["r_road"] == 0.0
-    kept, recs = filter_detections(seq, dets, FusionConfig(tau_conf=0.05, tau_road=0.3))
+    recs = filter_detections(seq, dets, FilterConfig(tau_conf=0.05, tau_road=0.3)).records
     assert recs[5]["reason"] == "kept"
 
 
@@ -126,7 +127,7 @@ def test_mesh_and_both_masks(tmp_path, monkeypatch) -> None:  # noqa: ANN001
     mesh = _FakeMesh()
     res = {}
     for mode in ("frame", "mesh", "both"):
-        _, recs = filter_detections(seq, [car, high, low], FusionConfig(mask=mode), mesh=mesh)
+        recs = filter_detections(seq, [car, high, low], FilterConfig(mask=mode), mesh=mesh).records
         res[mode] = [r["kept"] for r in recs]
     # The mesh mask shows road under the parked car (SPEC §5); the frame mask sees the car.
     assert res["frame"] == [False, False, True]
@@ -137,7 +138,9 @@ def test_mesh_and_both_masks(tmp_path, monkeypatch) -> None:  # noqa: ANN001
 def test_mesh_mode_without_mesh_falls_back(tmp_path, caplog) -> None:  # noqa: ANN001
     seq = make_seq(tmp_path, [_road_bottom()])
     with caplog.at_level(logging.WARNING, logger="pavemap"):
-        _, recs = filter_detections(seq, [Detection(0, "cam", (10, 5, 30, 25), 0, 0.5)], FusionConfig(mask="mesh"))
+        res = filter_detections(seq, [Detection(0, "cam", (10, 5, 30, 25), 0, 0.5)], FilterConfig(mask="mesh"))
+    recs = res.records
+    assert res.mask_used == "frame" and res.mask_fallbacks == {"no_mesh": 1}
     assert recs[0]["reason"] == "off_road" and "needs a mesh" in caplog.text
 
 
@@ -152,7 +155,7 @@ def test_yolo_txt_folder(tmp_path) -> None:  # noqa: ANN001
     assert len(dets) == 3
     assert dets[0].box == pytest.approx((30.0, 15.0, 50.0, 45.0)) and dets[0].conf == 0.8
     assert dets[1].conf == 1.0 and dets[1].cls == 3 and dets[2].frame == 1
-    _, recs = filter_detections(seq, dets, FusionConfig())
+    recs = filter_detections(seq, dets, FilterConfig()).records
     assert recs[2]["reason"] == "unknown_cls"
 
 

@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from pavemap.fuse import FusionConfig, fuse, write_fusion
+from pavemap.detect.config import FilterConfig
+from pavemap.export.run_files import write_fusion_outputs
+from pavemap.fuse import FusionConfig, FusionResult
 from pavemap.fuse.accumulate import Accumulators, accumulate, probability
-from pavemap.fuse.associate import associate_ray, rays_through, window_pairs
-from pavemap.geometry import HeightField, project
+from pavemap.fuse.associate import ASSOCIATIONS, DetectionBatch, associate_ray, window_pairs
+from pavemap.fuse.config import AssociationMode
+from pavemap.geometry import HeightField, pixel_rays, project
 from pavemap.types import Camera, Detection, Frame, SemanticClass, Sequence, View
 
 W, H, F = 640, 360, 400.0
@@ -68,6 +71,15 @@ def detections_for(seq: Sequence, defects=DEFECTS, conf: float = 0.6) -> list[De
     return out
 
 
+def run_fusion(seq: Sequence, dets: list[Detection], surface: HeightField, cfg: FusionConfig | None = None,
+               mesh: object | None = None, filt: FilterConfig | None = None) -> FusionResult:
+    """Stage 2's filter, then stage 3, chained as the pipeline does."""
+    from pavemap.pipeline import filter_and_fuse
+
+    return filter_and_fuse(seq, dets, surface, filt or FilterConfig(), cfg or FusionConfig(), mesh=mesh,
+                           progress=False)
+
+
 @pytest.fixture()
 def plane() -> HeightField:
     return HeightField.plane(0.0, -5.0, 0.1, 251, 101)
@@ -78,7 +90,7 @@ def test_modes_localise_defects(plane: HeightField, mode: str) -> None:
     seq = make_seq()
     dets = detections_for(seq)
     cfg = FusionConfig(association=mode, n_min=2)
-    res = fuse(seq, dets, plane, cfg, progress=False)
+    res = run_fusion(seq, dets, plane, cfg)
     assert res.metrics["valid_detections"] == len(dets)
     assert res.metrics["msr"] == 1.0
     assert len(res.instances) == len(DEFECTS)
@@ -101,11 +113,12 @@ def test_ray_mode_matches_brute_force(plane: HeightField) -> None:
     dets = detections_for(seq)
     K = torch.tensor(np.array([seq.cameras["front"].K] * len(dets)))
     T = torch.tensor(np.array([seq.frames[d.frame].views["front"].T_world_cam for d in dets]))
-    uv = torch.tensor([d.centre for d in dets], dtype=torch.float64)
-    o, d = rays_through(K, T, uv)
+    boxes = torch.tensor([d.box for d in dets], dtype=torch.float64)
     conf = torch.tensor([0.3] * len(dets), dtype=torch.float64)
+    batch = DetectionBatch(boxes, K, T, conf)
+    o, d = batch.centre_rays()
     cfg = FusionConfig(association="ray", beta0=2.5, beta1=1.0)
-    asc = associate_ray(plane, o, d, conf, cfg)
+    asc = associate_ray(plane, batch, cfg)
     V = plane.vertices().double()
     lam = (((V[None] - o[:, None]) * d[:, None]).sum(-1) / (d * d).sum(-1)[:, None]).clamp(min=0)
     dist = (V[None] - (o[:, None] + lam[..., None] * d[:, None])).norm(dim=-1)
@@ -116,16 +129,27 @@ def test_ray_mode_matches_brute_force(plane: HeightField) -> None:
     assert torch.allclose(asc.distance, dist.min(1).values, atol=1e-5)  # float32 vertex grid
 
 
-def test_rays_through_matches_pixel_rays() -> None:
-    from pavemap.geometry import pixel_rays
-
+def test_batched_pixel_rays_match_single_view() -> None:
+    """The batched form (one K / pose per pixel) the association uses equals the single-view form."""
     seq = make_seq(1)
     K = seq.cameras["front"].K
     T = seq.frames[0].views["front"].T_world_cam
     uv = torch.tensor([[10.0, 20.0], [300.5, 200.0]], dtype=torch.float64)
     o1, d1 = pixel_rays(K, T, uv)
-    o2, d2 = rays_through(torch.tensor(np.array([K, K])), torch.tensor(np.array([T, T])), uv)
+    o2, d2 = pixel_rays(torch.tensor(np.array([K, K])), torch.tensor(np.array([T, T])), uv)
     assert torch.allclose(o1, o2) and torch.allclose(d1, d2)
+
+
+def test_association_table_matches_the_config_modes() -> None:
+    """One table of association modes, one signature; the config's Literal lists exactly its keys."""
+    import inspect
+    import typing
+
+    assert set(ASSOCIATIONS) == set(typing.get_args(AssociationMode))
+    sigs = {tuple(inspect.signature(f).parameters) for f in ASSOCIATIONS.values()}
+    assert sigs == {("hf", "dets", "cfg")}
+    with pytest.raises(Exception, match="fusion.association"):
+        FusionConfig(association="nearest")  # type: ignore[arg-type]
 
 
 def test_window_pairs_ragged() -> None:
@@ -178,28 +202,33 @@ def test_n_min_and_maps(plane: HeightField, tmp_path) -> None:  # noqa: ANN001
     seq = make_seq(5)
     dets = detections_for(seq)
     lone = Detection(0, "front", box_of(seq, 0, (7.0, -2.0)), 1, 0.9)  # seen once only
-    res = fuse(seq, dets + [lone], plane, FusionConfig(n_min=2), progress=False)
+    res = run_fusion(seq, dets + [lone], plane, FusionConfig(n_min=2))
     assert all(math.dist(i.centroid, (7.0, -2.0)) > 1.0 for i in res.instances)
-    res1 = fuse(seq, dets + [lone], plane, FusionConfig(n_min=1, min_instance_obs=1), progress=False)
+    res1 = run_fusion(seq, dets + [lone], plane, FusionConfig(n_min=1, min_instance_obs=1))
     assert any(math.dist(i.centroid, (7.0, -2.0)) < 0.1 for i in res1.instances)
     # Map: peak near each defect, zero far away, values in [0, 1].
     g = res.grid
-    assert res.prob_map.shape == tuple(g["shape"]) and res.class_maps.shape == (4, *g["shape"])
+    assert res.prob_map.shape == g.shape and res.class_maps.shape == (4, *g.shape)
     assert res.prob_map.min() >= 0.0 and res.prob_map.max() <= 1.0
-    r, c = round((0.5 - g["y0"]) / g["res"]), round((9.0 - g["x0"]) / g["res"])
+    r, c = round((0.5 - g.y0) / g.res), round((9.0 - g.x0) / g.res)
     assert res.prob_map[r, c] > 0.05 and res.class_maps[0, r, c] > 0.05 and res.class_maps[3, r, c] == 0
-    assert res.prob_map[round((4.0 - g["y0"]) / g["res"]), c] == 0
-    write_fusion(res, tmp_path)
+    assert res.prob_map[round((4.0 - g.y0) / g.res), c] == 0
+    write_fusion_outputs(tmp_path, res)
     for name in ("defects.geojson", "defect_map.npy", "defect_map_D40.npy", "metrics.json",
                  "detections_mapped.jsonl"):
         assert (tmp_path / name).is_file()
     assert np.load(tmp_path / "defect_map.npy").shape == res.prob_map.shape
+    import json
+
+    from pavemap.geometry.grid import GridSpec
+
+    assert GridSpec.from_dict(json.loads((tmp_path / "defect_map.json").read_text())) == g
 
 
 def test_instance_stats(plane: HeightField) -> None:
     seq = make_seq(5)
     dets = detections_for(seq, defects=[((10.0, 0.0), 3)])
-    res = fuse(seq, dets, plane, FusionConfig(association="footprint", alpha=0.5), progress=False)
+    res = run_fusion(seq, dets, plane, FusionConfig(association="footprint", alpha=0.5))
     (inst,) = res.instances
     assert inst.code == "D40" and inst.observations == len(dets)
     assert inst.severity_max <= 1.0 and inst.severity_mean > 0.4
@@ -214,7 +243,7 @@ def test_off_surface_detection_not_mapped(plane: HeightField) -> None:
     # A box above the horizon: its ray never meets the road.
     d = Detection(0, "front", (300.0, 10.0, 340.0, 30.0), 0, 0.9)
     for mode in ("hit", "footprint", "ray"):
-        res = fuse(seq, [d], plane, FusionConfig(association=mode), progress=False)
+        res = run_fusion(seq, [d], plane, FusionConfig(association=mode))
         rec = res.detections[0]
         assert rec["kept"] and not rec["mapped"] and rec["distance_m"] is None
         assert res.metrics["msr"] == 0.0
@@ -251,7 +280,7 @@ def test_footprint_centre_removes_centre_ray_bias(plane: HeightField) -> None:
     d = Detection(0, "front", b, 3, 0.9)
     errs = {}
     for hp in ("centre", "footprint"):
-        res = fuse(seq, [d], plane, FusionConfig(hit_point=hp, n_min=1, min_instance_obs=1), progress=False)
+        res = run_fusion(seq, [d], plane, FusionConfig(hit_point=hp, n_min=1, min_instance_obs=1))
         errs[hp] = math.dist(res.detections[0]["hit_xyz"][:2], (8.0, 0.0))
     # The box's ground trapezoid is wider at its far end than the patch, so some bias is left.
     assert errs["centre"] > 0.2 and errs["footprint"] < errs["centre"] / 2, errs
@@ -269,7 +298,7 @@ def test_mesh_mask_from_surface_semantics(plane: HeightField) -> None:
     mesh = SimpleNamespace(surface=plane, sem_logits=logits, class_ids=[0, 1])
     on = Detection(0, "front", box_of(seq, 0, (9.0, 0.5)), 0, 0.9)
     off = Detection(0, "front", box_of(seq, 0, (9.0, -3.5)), 0, 0.9)
-    res = fuse(seq, [on, off], plane, FusionConfig(mask="mesh", n_min=1, min_instance_obs=1), mesh=mesh,
-               progress=False)
+    res = run_fusion(seq, [on, off], plane, FusionConfig(n_min=1, min_instance_obs=1), mesh=mesh,
+                     filt=FilterConfig(mask="mesh"))
     assert [r["reason"] for r in res.detections] == ["kept", "off_road"]
     assert res.detections[0]["r_road"] == 1.0 and res.detections[1]["r_road"] == 0.0

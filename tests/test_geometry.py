@@ -72,20 +72,47 @@ def test_height_at_and_plane():
     assert torch.allclose(z, torch.tensor([0.5 * 1.0 + 0.25 * 4.0, 0.25 * 4.0 + 0.5 * 2.0]))
 
 
-def test_from_truth(tmp_path):
-    (tmp_path / "truth").mkdir()
+@pytest.mark.parametrize("legacy", [False, True])
+def test_truth_height_reader(tmp_path, legacy):
+    from pavemap.geometry import GridSpec
+    from pavemap.io.truth import read_truth_height, write_truth_height
+
     a = np.arange(12, dtype=np.float32).reshape(3, 4)
     a[0, 0] = np.nan
-    np.save(tmp_path / "truth" / "height.npy", a)
-    (tmp_path / "truth" / "height.json").write_text(
-        json.dumps({"x_min": 1.0, "y_min": 2.0, "resolution": 0.5, "shape": [3, 4]}))
-    hf = HeightField.from_truth(tmp_path)
-    assert (hf.nx, hf.ny, hf.res, hf.x0, hf.y0) == (4, 3, 0.5, 1.0, 2.0)
+    grid = GridSpec(1.0, 2.0, 0.5, 4, 3)
+    write_truth_height(tmp_path, a, grid)
+    if legacy:  # files written before GridSpec
+        (tmp_path / "truth" / "height.json").write_text(
+            json.dumps({"x_min": 1.0, "y_min": 2.0, "resolution": 0.5, "shape": [3, 4]}))
+    hf = read_truth_height(tmp_path)
+    assert (hf.nx, hf.ny, hf.res, hf.x0, hf.y0) == (4, 3, 0.5, 1.0, 2.0) and hf.grid == grid
     assert not hf.valid[0, 0] and hf.valid.sum() == 11
     assert torch.isfinite(hf.heights).all()
     (tmp_path / "truth" / "height.json").write_text(json.dumps({"x_min": 1.0}))
     with pytest.raises(ValueError, match="height.json"):
-        HeightField.from_truth(tmp_path)
+        read_truth_height(tmp_path)
+
+
+def test_geometry_does_no_file_io():
+    """pavemap.geometry is pure: it imports nothing from pavemap.io (nor open()s files)."""
+    import ast
+    import pathlib
+
+    import pavemap.geometry
+
+    root = pathlib.Path(pavemap.geometry.__file__).parent
+    for f in sorted(root.glob("*.py")):
+        tree = ast.parse(f.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                names = []
+            assert not any(n == "pavemap.io" or n.startswith("pavemap.io.") for n in names), (f.name, names)
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+                assert node.func.id != "open", f.name
 
 
 @pytest.mark.parametrize("seed", [0, 1])

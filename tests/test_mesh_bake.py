@@ -22,11 +22,15 @@ def seq(tmp_path_factory):
 def _true_surface(seq, res: float = 0.1):
     traj = np.array([np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], 0) for f in seq.frames])
     g = build_grid(traj[:, :2], res, 4.0)
-    xs, ys = g.x0 + res * np.arange(g.nx), g.y0 + res * np.arange(g.ny)
-    X, Y = np.meshgrid(xs, ys)
+    X, Y = g.spec.centres()
     xy = np.stack([X, Y], -1).reshape(-1, 2)
     z, _ = truth_field().height_at(torch.tensor(xy))
-    return g, xy, z.float().reshape(g.ny, g.nx)
+    return g, xy, z.float().reshape(g.spec.shape)
+
+
+def _field(g, heights: torch.Tensor) -> HeightField:
+    s = g.spec
+    return HeightField(s.x0, s.y0, s.res, heights, torch.from_numpy(g.valid.copy()))
 
 
 def _all_views_pool(seq):
@@ -42,11 +46,11 @@ def test_baked_colours_match_the_texture(seq):
     g, xy, heights = _true_surface(seq)
     pool = _all_views_pool(seq)
     valid = torch.from_numpy(g.valid.copy())
-    rgb, support, coloured = bake_colours(heights, valid, g.x0, g.y0, g.res, pool, pool.T, 60.0)
-    assert rgb.shape == (g.ny, g.nx, 3) and support.shape == (g.ny, g.nx)
+    rgb, support, coloured = bake_colours(_field(g, heights), pool, pool.T, 60.0)
+    assert rgb.shape == (*g.spec.shape, 3) and support.shape == g.spec.shape
     assert torch.isfinite(rgb).all() and (rgb >= 0).all() and (rgb <= 1).all()
     # well-observed vertices carry the texture's colour there (a pixel averages ~0.1 m of texture)
-    tex = torch.from_numpy(texture(xy).reshape(g.ny, g.nx, 3)).float()
+    tex = torch.from_numpy(texture(xy).reshape(*g.spec.shape, 3)).float()
     seen = (support > 2.0) & valid
     assert seen.sum() > 500
     err = (rgb - tex).abs().mean(-1)[seen]
@@ -72,13 +76,12 @@ def test_bake_fills_isolated_gaps():
     yy, xx = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
     uv = torch.stack([xx.reshape(-1), yy.reshape(-1)], 1)
     n = uv.shape[0]
-    pool = PixelPool([ViewKey(0, "c")], torch.linalg.inv(K)[None], T[None], torch.zeros(n, dtype=torch.long), uv,
+    pool = PixelPool([ViewKey(0, "c")], K[None], T[None], torch.zeros(n, dtype=torch.long), uv,
                      torch.full((n, 3), 128, dtype=torch.uint8), torch.full((n,), -1, dtype=torch.long),
                      torch.ones(n, dtype=torch.bool), None)
     res = 0.1  # pixel footprint at 10 m: 0.5 m, so most vertices get no pixel
     hf = HeightField.plane(-2.0, -2.0, res, 41, 41, 0.0)
-    rgb, support, coloured = bake_colours(hf.heights.float(), hf.valid, hf.x0, hf.y0, res, pool, pool.T, 60.0,
-                                fill_sigma=3.0)
+    rgb, support, coloured = bake_colours(hf, pool, pool.T, 60.0, fill_sigma=3.0)
     inner = coloured[12:28, 12:28]
     assert inner.all() and (support[12:28, 12:28] == 0).any()  # some inner vertices were filled, not seen
     np.testing.assert_allclose(rgb[12:28, 12:28].numpy(), 128 / 255.0, atol=1e-5)
@@ -104,8 +107,7 @@ def test_depth_relief_keeps_the_curb_and_ignores_objects(tmp_path):
     """The initial surface from measured depth: the 0.12 m curb stays a step with the fine bins, and depth on
     a non-ground class (the parked vehicle) is dropped from the pool."""
     from mesh_scene import CURB, ROAD_HALF
-    from pavemap.mesh.model import ground_under_trajectory
-    from pavemap.mesh.train import _depth_relief
+    from pavemap.mesh.init_surface import depth_points, depth_relief, ground_under_trajectory
 
     seq = read_scene(tmp_path / "d", frames=6, width=64, height=40, depth_every=1)
     lut = np.full(256, -1, dtype=np.int64)
@@ -120,8 +122,7 @@ def test_depth_relief_keeps_the_curb_and_ignores_objects(tmp_path):
     traj = np.array([np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], 0) for f in seq.frames])
     g = build_grid(traj[:, :2], 0.1, 5.0)
     base = ground_under_trajectory(g, traj[:, :2], traj[:, 2] - 1.5)
-    vid = np.flatnonzero(g.valid.reshape(-1))
-    xy = np.stack([g.x0 + (vid % g.nx) * g.res, g.y0 + (vid // g.nx) * g.res], 1)
+    xy = g.vertex_xy()
     truth, _ = truth_field().height_at(torch.tensor(xy))
     truth = truth.numpy()
 
@@ -131,8 +132,9 @@ def test_depth_relief_keeps_the_curb_and_ignores_objects(tmp_path):
         inside = x_ok & (np.abs(np.abs(xy[:, 1]) - ROAD_HALF + 0.25) < 0.1)
         return float(z[outside].mean() - z[inside].mean())
 
-    coarse = base + _depth_relief(pool, g, traj, traj[:, 2] - 1.5, 1.0, fill_sigmas=(1.0, 2.0, 4.0))
-    fine = base + _depth_relief(pool, g, traj, traj[:, 2] - 1.5, 1.0, fine_cell=0.3, fill_sigmas=(1.0, 2.0, 4.0))
+    pts = depth_points(pool)
+    coarse = base + depth_relief(pts, g, traj, traj[:, 2] - 1.5, 1.0, fill_sigmas=(1.0, 2.0, 4.0))
+    fine = base + depth_relief(pts, g, traj, traj[:, 2] - 1.5, 1.0, fine_cell=0.3, fill_sigmas=(1.0, 2.0, 4.0))
     assert step(truth) > CURB - 0.01
     assert step(fine) > 0.75 * step(truth) > step(coarse), (step(fine), step(truth), step(coarse))
 
@@ -146,14 +148,14 @@ def test_sharpened_bake_fits_pixels_better_and_stays_near_the_texture(seq):
     g, xy, heights = _true_surface(seq)
     pool = _all_views_pool(seq)
     valid = torch.from_numpy(g.valid.copy())
-    hf = HeightField(g.x0, g.y0, g.res, heights, valid)
-    o, d = view_rays(pool.Kinv, pool.T, pool.view, pool.uv)
+    hf = _field(g, heights)
+    o, d = view_rays(pool.K, pool.T, pool.view, pool.uv)
     hit = hits_to_rayhit(hf, o, d, find_hits(hf, o, d, 60.0))
     gt = pool.rgb[hit.hit].float() / 255.0
-    tex = torch.from_numpy(texture(xy).reshape(g.ny, g.nx, 3)).float()
+    tex = torch.from_numpy(texture(xy).reshape(*g.spec.shape, 3)).float()
     mse, tex_err = [], []
     for k in (0, 1, 2):
-        rgb, support, coloured = bake_colours(heights, valid, g.x0, g.y0, g.res, pool, pool.T, 60.0, sharpen_iters=k)
+        rgb, support, coloured = bake_colours(hf, pool, pool.T, 60.0, sharpen_iters=k)
         pred = hit.interpolate(rgb.reshape(-1, 3))[hit.hit]
         mse.append(float(((pred - gt) ** 2).mean()))
         tex_err.append(float((rgb - tex).abs().mean(-1)[(support > 2.0) & valid].median()))

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from mesh_scene import read_scene, texture, truth_field
+from pavemap.geometry import HeightField
 from pavemap.mesh.data import build_pool, finite_views
 from pavemap.mesh.model import build_grid
 from pavemap.mesh.pose import align_poses, corrected_poses
@@ -30,15 +31,14 @@ def test_alignment_to_the_true_surface_and_texture_recovers_the_poses(seq):
     pool = build_pool(pert, views, 1.0, lut, True, True)
     traj = np.array([np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], 0) for f in seq.frames])
     g = build_grid(traj[:, :2], 0.1, 4.0)
-    X, Y = np.meshgrid(g.x0 + 0.1 * np.arange(g.nx), g.y0 + 0.1 * np.arange(g.ny))
+    s = g.spec
+    X, Y = s.centres()
     xy = np.stack([X, Y], -1).reshape(-1, 2)
     z, _ = truth_field().height_at(torch.tensor(xy))
-    heights = z.float().reshape(g.ny, g.nx)
-    tex = torch.from_numpy(texture(xy).reshape(g.ny, g.nx, 3)).float()
-    valid = torch.from_numpy(g.valid.copy())
+    surface = HeightField(s.x0, s.y0, s.res, z.float().reshape(s.shape), torch.from_numpy(g.valid.copy()))
+    tex = torch.from_numpy(texture(xy).reshape(*s.shape, 3)).float()
     delta0 = torch.zeros(len(pool.keys), 6)
-    delta, costs = align_poses(heights, valid, g.x0, g.y0, g.res, pool, delta0, 60.0, iters=8, texture=tex,
-                               gauge_length=0.0)
+    delta, costs = align_poses(surface, pool, delta0, 60.0, iters=8, texture=tex, gauge_length=0.0)
     assert costs[-1] < 0.5 * costs[0], costs
 
     def errors(d):

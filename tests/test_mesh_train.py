@@ -34,8 +34,7 @@ def scene(tmp_path_factory):
 def test_grid_crop_counts():
     traj = np.array([[0.0, 0.0], [10.0, 0.0]])
     g = build_grid(traj, 0.1, 2.0)
-    xs, ys = g.x0 + 0.1 * np.arange(g.nx), g.y0 + 0.1 * np.arange(g.ny)
-    X, Y = np.meshgrid(xs, ys)
+    X, Y = g.spec.centres()
     dist = np.where((X >= 0) & (X <= 10), np.abs(Y), np.hypot(np.minimum(np.abs(X), np.abs(X - 10)), Y))
     assert (g.valid[dist <= 1.99]).all() and not g.valid[dist >= 2.1].any()
     assert abs(g.vertices - (10 * 4 + np.pi * 4) / 0.01) / g.vertices < 0.03
@@ -196,7 +195,7 @@ def test_depth_samples_keep_returns_on_their_own_rays():
 
 
 def test_ground_continues_the_grade_beyond_the_trajectory_ends():
-    from pavemap.mesh.model import idw_ground
+    from pavemap.mesh.init_surface import idw_ground
 
     traj = np.stack([np.linspace(0.0, 20.0, 21), np.zeros(21)], 1)
     ground = 0.05 * traj[:, 0]  # a 5 % climb
@@ -229,17 +228,17 @@ def test_pose_refinement_per_frame_moves_the_rig_as_one(depth_scene):
 def test_unmeasured_ground_takes_the_cross_section_from_along_the_road():
     """A patch of sidewalk no point reaches (behind a parked car) gets the sidewalk's height from before and
     after it along the road, not a blend with the road 0.12 m below."""
-    from pavemap.mesh.train import _along_track, _fill_along_track
+    from pavemap.mesh.init_surface import along_track, fill_along_track
 
     traj = np.stack([np.linspace(0.0, 30.0, 31), np.zeros(31)], 1)
     X, Y = np.meshgrid(np.arange(0.0, 30.0, 0.1), np.arange(-5.0, 5.0, 0.1))
     xy = np.stack([X.reshape(-1), Y.reshape(-1)], 1)
     truth = np.where(xy[:, 1] < -3.0, 0.12, 0.0)  # sidewalk right of the road
     measured = ~((xy[:, 0] > 12) & (xy[:, 0] < 16) & (xy[:, 1] < -2.5))  # a car hides 4 m of curb and sidewalk
-    s, l = _along_track(traj, xy)
+    s, l = along_track(traj, xy)
     np.testing.assert_allclose(s, xy[:, 0], atol=1e-6)
     np.testing.assert_allclose(l, xy[:, 1], atol=1e-6)
-    filled = _fill_along_track(np.where(measured, truth, 0.0), measured, s, l, sigma_s=4.0)
+    filled = fill_along_track(np.where(measured, truth, 0.0), measured, s, l, sigma_s=4.0)
     hidden = ~measured
     err = np.abs(filled - truth)
     away = hidden & (np.abs(xy[:, 1] + 3.0) > 0.25)  # the step itself is smoothed over +-0.1 m across

@@ -60,7 +60,7 @@ def test_rerun_resumes_without_redoing_the_mesh(finished_run, tiny_nuscenes_seq)
     assert len(again.defects) == len(result.defects)
     # a changed fusion setting reuses the mesh and detections too
     cfg = _fast_config()
-    cfg.fusion.tau_road = 0.7
+    cfg.filter.tau_road = 0.7
     pavemap.run(tiny_nuscenes_seq, cfg, out, progress=False)
     assert ply.stat().st_mtime_ns == before
 
@@ -102,7 +102,7 @@ def test_read_only_output_is_a_clear_error(tiny_seq, tmp_path):
 
 def test_missing_weights_is_a_clear_cli_error(tiny_seq, tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "pavemap.cli", "run", str(tiny_seq), "--out", str(tmp_path / "r"),
+        [sys.executable, "-m", "pavemap.cli", "run", str(tiny_seq.root), "--out", str(tmp_path / "r"),
          "--detector", "yolo", "--weights", str(tmp_path / "nope.pt")],
         capture_output=True, text=True,
     )

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from pavemap.geometry import HeightField, pixel_grid, pixel_rays, surface_bounds
+from pavemap.geometry import pixel_grid, pixel_rays, surface_bounds
 from pavemap.geometry.reference import reference_intersect
 from pavemap.mesh import RoadMesh, render_view
 from pavemap.mesh.model import RoadMeshModel, build_grid
 from pavemap.mesh.render import view_rays
-from pavemap.mesh.train import forward_rays
+from pavemap.mesh.step import forward_rays
 from pavemap.types import Camera, SemanticClass
 from test_geometry import _look_at, curb_field
 
@@ -58,8 +58,8 @@ def test_view_rays_equal_pixel_rays():
     px = pixel_grid(8, 6)
     view = torch.tensor([0] * 48 + [1] * 48)
     uv = torch.cat([px, px])
-    Kinv = torch.tensor(np.linalg.inv(K), dtype=torch.float32)[None].expand(2, 3, 3)
-    o, d = view_rays(Kinv, torch.tensor(np.array(Ts), dtype=torch.float32), view, uv)
+    Ks = torch.tensor(K, dtype=torch.float32)[None].expand(2, 3, 3)
+    o, d = view_rays(Ks, torch.tensor(np.array(Ts), dtype=torch.float32), view, uv)
     for k, T in enumerate(Ts):
         o2, d2 = pixel_rays(K, T, px)
         assert torch.allclose(o[48 * k:48 * (k + 1)], o2, atol=1e-5)
@@ -72,8 +72,7 @@ def test_gradients_reach_mlp_colours_logits_and_poses():
     with torch.no_grad():
         model.height_mlp.mlp1[-1].bias.fill_(0.01)  # make the last layer's inputs matter
     cache = model.dense(model.heights().detach(), fill=0.0).reshape(-1)
-    bounds = surface_bounds(HeightField(grid.x0, grid.y0, grid.res, cache.reshape(grid.ny, grid.nx),
-                                        model.valid_t), torch.float32)
+    bounds = surface_bounds(model.field(cache), torch.float32)
     T = torch.tensor(_look_at([0.5, -0.5, 1.5], [2.5, 0.5, 0.0]), dtype=torch.float32, requires_grad=True)
     K = np.array([[20.0, 0, 9.5], [0, 20.0, 7.5], [0, 0, 1]])
     o, d = pixel_rays(K, T, pixel_grid(20, 16))

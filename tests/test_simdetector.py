@@ -107,7 +107,7 @@ def test_cli_detect_sim(tiny_nuscenes_seq, tmp_path):
 
     root = tmp_path / "copy"
     shutil.copytree(tiny_nuscenes_seq.root, root)
-    res = CliRunner().invoke(app, ["detect", str(root), "--backend", "sim", "--seed", "2"])
+    res = CliRunner().invoke(app, ["detect", str(root), "--detector", "sim", "--seed", "2"])
     assert res.exit_code == 0, res.output
     assert len(read_detections(root / DETECTIONS_FILE)) == len(read_detection_truth(root))
 

@@ -11,9 +11,11 @@ import pytest
 from PIL import Image
 
 from pavemap.errors import PavemapError
+from pavemap.geometry.grid import GridSpec
 from pavemap.io.sequence import load_depth, load_semantics, read_sequence
 from pavemap.synth import load_truth_defects, load_truth_height, load_world, make_world, render_view, synthesize
-from pavemap.synth.world import CLASSES, Grid, bilinear_np
+from pavemap.synth.params import CLASSES
+from pavemap.synth.surface import bilinear_np
 
 
 def _instances(seq, f, cam) -> np.ndarray:
@@ -70,9 +72,13 @@ def test_truth_files(tiny_seq):
     assert defects, "no defects in the tiny world"
     assert {d.cls for d in defects} <= {0, 1, 2, 3}
     assert all(d.polygon.is_valid and d.polygon.area > 0 for d in defects)
-    assert all(d.properties["name"] == d.code for d in defects)
+    assert all(d.properties["code"] == d.code for d in defects)
     h, grid = load_truth_height(root)
-    assert h.dtype == np.float32 and list(h.shape) == grid["shape"] and grid["resolution"] == 0.05
+    assert h.dtype == np.float32 and h.shape == grid.shape and grid.res == 0.05
+    # height.json is the one grid format (GridSpec.to_dict), nothing else spelled
+    meta = json.loads((root / "truth" / "height.json").read_text())
+    assert GridSpec.from_dict(meta) == grid and {"x0", "y0", "res", "nx", "ny"} <= set(meta)
+    assert not {"x_min", "y_min", "resolution"} & set(meta)
     w = load_world(root)  # rebuilt from truth/world.json: the same surface
     np.testing.assert_array_equal(w.height, h)
     d = json.loads((root / "sequence.json").read_text())
@@ -83,8 +89,7 @@ def test_defect_centres_project_onto_their_instance(tiny_nuscenes_seq, tiny_seq)
     """Project each GT defect centre into the views where it is visible: it lands on its own instance."""
     checked = hits = 0
     for seq in (tiny_seq, tiny_nuscenes_seq):
-        h, g = load_truth_height(seq.root)
-        grid = Grid(g["x_min"], g["y_min"], g["resolution"], *g["shape"])
+        h, grid = load_truth_height(seq.root)
         defects = load_truth_defects(seq.root)
         for f in seq.frames:
             for cam, v in f.views.items():
@@ -95,7 +100,7 @@ def test_defect_centres_project_onto_their_instance(tiny_nuscenes_seq, tiny_seq)
                 for d in defects:
                     if counts[d.id + 1] < 30:  # well resolved only: a 0.2 m crack band at 40 m is sub-pixel
                         continue
-                    cx, cy = d.properties["centre"]
+                    cx, cy = d.properties["x_m"], d.properties["y_m"]
                     X = np.array([cx, cy, bilinear_np(h, grid, np.array([cx]), np.array([cy]))[0]])
                     u, vv, z = _project(K, v.T_world_cam, X)
                     iu, iv = int(round(u)), int(round(vv))
@@ -145,8 +150,7 @@ def test_layers_and_sparse_depth(tiny_nuscenes_seq):
     assert 0.01 < np.mean(fracs) < 0.08, fracs
     # camera heights about 1.5 m above the road, pointing roughly horizontally
     T = f.views["CAM_FRONT"].T_world_cam
-    h, g = load_truth_height(seq.root)
-    grid = Grid(g["x_min"], g["y_min"], g["resolution"], *g["shape"])
+    h, grid = load_truth_height(seq.root)
     assert 1.3 < T[2, 3] - bilinear_np(h, grid, T[:1, 3], T[1:2, 3])[0] < 1.7
     assert abs(T[2, 2]) < 0.1
 
@@ -184,3 +188,17 @@ def test_cli_synth(tmp_path):
     assert ((d > 0) == (sem != 7)).mean() > 0.99  # dense: depth wherever something was hit
     res = CliRunner().invoke(app, ["synth", "--preset", "nope", "--out", str(tmp_path / "x")])
     assert res.exit_code != 0
+
+
+def test_synth_on_a_missing_gpu_is_a_clear_error(tmp_path):
+    import torch
+    from typer.testing import CliRunner
+
+    from pavemap.cli import app
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    res = CliRunner().invoke(app, ["synth", "--out", str(tmp_path / "x"), "--frames", "1", "--device", "cuda"])
+    assert res.exit_code == 2, res.output
+    assert "error: device 'cuda'" in res.output and "CUDA" in res.output
+    assert not (tmp_path / "x").exists()

@@ -235,8 +235,8 @@ def test_cli_detect_yolo(det_weights, tmp_path):
 
     _two_scale_sequence(tmp_path / "seq")
     r = CliRunner().invoke(
-        app, ["detect", str(tmp_path / "seq"), "--backend", "yolo", "--weights", str(det_weights),
-              "--imgsz", "320", "--device", "cpu"],
+        app, ["detect", str(tmp_path / "seq"), "--detector", "yolo", "--weights", str(det_weights),
+              "--set", "detector.imgsz=320", "--device", "cpu"],
     )
     assert r.exit_code == 0, r.output
     assert "detections ->" in r.output

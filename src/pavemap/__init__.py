@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 if TYPE_CHECKING:  # pragma: no cover
-    from pavemap.config import load_config, preset_config
+    from pavemap.config import load_config, preset_config, preset_for
     from pavemap.io.sequence import read_sequence
     from pavemap.pipeline import RunResult, run
     from pavemap.synth import synthesize
@@ -25,6 +25,7 @@ _LAZY = {
     "RunResult": "pavemap.pipeline",
     "load_config": "pavemap.config",
     "preset_config": "pavemap.config",
+    "preset_for": "pavemap.config",
     "read_sequence": "pavemap.io.sequence",
     "synthesize": "pavemap.synth",
 }
@@ -39,4 +40,4 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'pavemap' has no attribute {name!r}")
 
 
-__all__ = ["RunResult", "load_config", "preset_config", "read_sequence", "run", "synthesize"]
+__all__ = ["RunResult", "load_config", "preset_config", "preset_for", "read_sequence", "run", "synthesize"]

@@ -1,35 +1,96 @@
 """The ``pavemap`` command line: one thin command per step.
 
 Each area registers its commands from ``pavemap.commands.<area>`` (a ``register(app)``
-function), so the CLI stays a thin layer over the stage functions.
+function), so the CLI stays a thin layer over the stage functions. Shared options live in
+:mod:`pavemap.commands.options`. A user error (:class:`PavemapError`, :class:`SequenceError`, a
+missing file) ends the command with one ``error: ...`` line and exit status 2.
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
+import re
 import sys
+from collections.abc import Sequence
+from typing import Any
 
 import typer
+from typer.core import TyperGroup
 
+from pavemap import __version__
 from pavemap.errors import PavemapError, SequenceError
+
+USER_ERRORS = (SequenceError, PavemapError, FileNotFoundError, FileExistsError, PermissionError)
+_PAIR = re.compile(r"[A-Za-z_]\w*\.[A-Za-z_]\w*=")
+
+
+def expand_set_args(args: Sequence[str]) -> list[str]:
+    """``--set a.b=1 c.d=2`` → ``--set a.b=1 --set c.d=2``: pairs after a ``--set`` value belong to it."""
+    out: list[str] = []
+    in_set = False
+    i = 0
+    while i < len(args):
+        a = args[i]
+        if a in ("--set", "-s") and i + 1 < len(args):
+            out += [a, args[i + 1]]
+            in_set, i = True, i + 2
+            continue
+        if a == "--":
+            out += args[i:]
+            break
+        if a.startswith("--set="):
+            in_set = True
+        elif in_set and _PAIR.match(a):
+            out += ["--set", a]
+            i += 1
+            continue
+        else:
+            in_set = False
+        out.append(a)
+        i += 1
+    return out
+
+
+class _PavemapGroup(TyperGroup):
+    """Expands ``--set`` pairs and turns user errors into one line and exit status 2."""
+
+    def main(self, args: Sequence[str] | None = None, *rest: Any, **kwargs: Any) -> Any:
+        return super().main(expand_set_args(sys.argv[1:] if args is None else list(args)), *rest, **kwargs)
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except USER_ERRORS as e:
+            typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
+            raise typer.Exit(2) from None
+
 
 app = typer.Typer(
     name="pavemap",
+    cls=_PavemapGroup,
     help="Map road defects in 3D from driving video: BEV road mesh, detection, filtering and fusion.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,
     pretty_exceptions_enable=False,
 )
 
 
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"pavemap {__version__}")
+        raise typer.Exit()
+
 
 @app.callback()
-def _root() -> None:
+def _root(
+    version: bool = typer.Option(False, "--version", "-V", callback=_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
     """pavemap: road defect mapping. Run `pavemap demo` for a full example on synthetic data."""
 
 
-COMMAND_MODULES = ("info", "synth", "detect", "reconstruct", "fuse", "imports", "train", "run", "compare")
+COMMAND_MODULES = ("info", "synth", "detect", "reconstruct", "fuse", "imports", "train", "run", "compare", "config")
 
 for _name in COMMAND_MODULES:
     _mod = f"pavemap.commands.{_name}"
@@ -38,11 +99,7 @@ for _name in COMMAND_MODULES:
 
 
 def main() -> None:
-    try:
-        app()
-    except (SequenceError, PavemapError, FileNotFoundError, FileExistsError, PermissionError) as e:
-        typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
-        sys.exit(2)
+    app()
 
 
 if __name__ == "__main__":

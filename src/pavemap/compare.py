@@ -22,7 +22,7 @@ import shapely
 
 from pavemap.errors import PavemapError
 from pavemap.export.geo import local_tangent, origin_to_dict
-from pavemap.export.geojson import LONLAT_DECIMALS, METRE_DECIMALS, DefectLayer, geometry_to_geojson, read_geojson
+from pavemap.export.geojson import DefectLayer, features_to_geojson, read_geojson
 from pavemap.io.atomic import atomic_write_json
 from pavemap.types import DEFECT_CODES
 
@@ -171,14 +171,10 @@ def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | 
     def code(d: _Defects, k: int | None) -> str | None:
         return DEFECT_CODES[d.cls[k]] if k is not None and d.cls[k] >= 0 else None
 
-    lt_out = local_tangent(la.geo_origin) if frame == "lonlat" else None
-    nd = LONLAT_DECIMALS if lt_out is not None else METRE_DECIMALS
-    features, pair_rows = [], []
+    geoms, pair_rows = [], []
     for n, (r, i, j) in enumerate(sorted(records, key=lambda t: (CHANGES.index(t[0]["change"]), str(t[0]["id_b"]),
                                                                    str(t[0]["id_a"])))):
-        g = r.pop("geometry")
-        if g is not None and lt_out is not None:
-            g = lt_out.geometry_to_lonlat(g)
+        geoms.append(r.pop("geometry"))
         src = B if j is not None else A
         k = j if j is not None else i
         props = {
@@ -193,25 +189,23 @@ def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | 
         }
         if i is not None and j is not None:
             props["area_ratio"] = round(float(B.area[j] / max(A.area[i], _EPS)), 3)
-        features.append({"type": "Feature", "id": n + 1, "geometry": geometry_to_geojson(g, nd), "properties": props})
         pair_rows.append(props)
-    counts = {c: sum(f["properties"]["change"] == c for f in features) for c in CHANGES}
+    counts = {c: sum(p["change"] == c for p in pair_rows) for c in CHANGES}
     out_dir = Path(out)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise PavemapError(f"{out_dir}: cannot create the output folder ({e.strerror or e})") from None
-    meta = {"format": "pavemap-changes/1", "coordinates": frame,
-            "geo_origin": origin_to_dict(la.geo_origin) if frame == "lonlat" else None,
-            "frame": ("WGS84 longitude, latitude" if frame == "lonlat" else
-                      "run A's local world frame x, y metres; not WGS84"),
-            "run_a": str(pa), "run_b": str(pb)}
+    meta = {"format": "pavemap-changes/1", "run_a": str(pa), "run_b": str(pb)}
+    if frame != "lonlat":
+        meta["frame"] = "run A's local world frame x, y metres; not WGS84"
+    fc = features_to_geojson(geoms, [dict(p) for p in pair_rows], la.geo_origin if frame == "lonlat" else None,
+                             meta=meta)
     summary = {"run_a": str(pa), "run_b": str(pb), "defects_a": len(A.ids), "defects_b": len(B.ids),
                "counts": counts, "match_m": match_m, "grow_ratio": grow_ratio, "coordinates": frame,
                "warnings": warnings, "changes": pair_rows}
     try:
-        atomic_write_json(out_dir / "changes.geojson", {"type": "FeatureCollection", "pavemap": meta,
-                                                         "features": features}, indent=None)
+        atomic_write_json(out_dir / "changes.geojson", fc, indent=None)
         _changes_figure(out_dir / "changes.png", A, B, records, counts)
         atomic_write_json(out_dir / "changes.json", summary)
     except PermissionError as e:

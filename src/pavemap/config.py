@@ -1,68 +1,116 @@
-"""Run configuration: presets carrying the paper's parameters and a validated YAML schema.
+"""Run configuration: presets carrying the paper's parameters, and one schema derived from the types.
 
-A config file is YAML with optional sections ``mesh``, ``detector``, ``fusion``, ``output``
-and top-level ``preset`` and ``device``::
+A config file is YAML with optional sections ``mesh``, ``detector``, ``filter``, ``fusion``,
+``output`` and top-level ``preset`` and ``device``::
 
     preset: nuscenes        # start from a preset, then override
     device: auto
     mesh:      {epochs: 7, resolution: 0.1}
-    detector:  {backend: sim, seed: 0}
-    fusion:    {association: hit, tau_road: 0.5}
+    detector:  {backend: auto, seed: 0}
+    filter:    {tau_conf: 0.05, tau_road: 0.5, mask: frame}
+    fusion:    {association: hit}
     output:    {overlay_frames: 3}
 
-The keys of ``mesh`` and ``fusion`` are the fields of :class:`pavemap.mesh.MeshConfig` and
-:class:`pavemap.fuse.FusionConfig`, so the schema can never drift from the code. An
-unknown key is an error naming the key and the nearest valid one.
+The keys of a section are the fields of its dataclass (:class:`pavemap.mesh.MeshConfig`,
+:class:`pavemap.detect.config.DetectorConfig`, :class:`pavemap.detect.config.FilterConfig`,
+:class:`pavemap.fuse.FusionConfig`, :class:`OutputConfig`) and a value is checked against the
+field's type hint (:func:`coerce`), so the schema cannot drift from the code. The same check turns
+command-line text (``--set fusion.hit_radius_m=0.4``) into typed values. After the values are in,
+every section's ``validate()`` range-checks it, so a bad value stops the run before any stage starts.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
+import math
 import os
+import re
+import sys
+import types
 import typing
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
 
+from pavemap.detect.config import DetectorConfig, FilterConfig
 from pavemap.errors import PavemapError
 
-PRESETS = ("nuscenes", "kitti")
+if TYPE_CHECKING:  # the stage configs import torch through their packages: loaded on first use
+    from pavemap.fuse.config import FusionConfig
+    from pavemap.mesh.config import MeshConfig
 
-
-@dataclass
-class DetectorConfig:
-    backend: str = "sim"  # sim | yolo | file
-    weights: str | None = None  # yolo: path to detection weights (.pt)
-    file: str | None = None  # file: detections JSONL or a folder of YOLO txt files
-    seed: int = 0  # sim: random seed
-    imgsz: int = 640
-    conf: float = 0.01  # yolo: keep everything above this; the fusion threshold decides later
-    batch: int = 8
-    class_map: str | None = None
+Preset = Literal["nuscenes", "kitti"]
+PRESETS: tuple[str, ...] = typing.get_args(Preset)
+SECTIONS: tuple[str, ...] = ("mesh", "detector", "filter", "fusion", "output")
+TOP_LEVEL: tuple[str, ...] = ("preset", "device")
 
 
 @dataclass
 class OutputConfig:
+    """What ``pavemap run`` writes besides the defect map.
+
+    - ``figures`` / ``report``: the PNG figures and ``report.html``.
+    - ``overlay_frames``: frames drawn with their detections in the report (0: none).
+    - ``sweep_tau_conf``: confidence thresholds of the report's precision/recall sweep, each in [0, 1].
+    """
+
     figures: bool = True
     report: bool = True
     overlay_frames: int = 3
     sweep_tau_conf: tuple[float, ...] = (0.05, 0.10, 0.15, 0.20, 0.25, 0.35, 0.5)
 
+    def validate(self) -> None:
+        """Raise PavemapError naming the first bad field."""
+        if self.overlay_frames < 0:
+            raise PavemapError(f"output.overlay_frames must be >= 0, got {self.overlay_frames}")
+        if not self.sweep_tau_conf:
+            raise PavemapError("output.sweep_tau_conf needs at least one threshold")
+        for t in self.sweep_tau_conf:
+            if not (math.isfinite(t) and 0.0 <= t <= 1.0):
+                raise PavemapError(f"output.sweep_tau_conf values must be in [0, 1], got {t}")
+
+
+def _section_types() -> dict[str, type]:
+    from pavemap.fuse.config import FusionConfig
+    from pavemap.mesh.config import MeshConfig
+
+    return {"mesh": MeshConfig, "detector": DetectorConfig, "filter": FilterConfig, "fusion": FusionConfig,
+            "output": OutputConfig}
+
+
+def _section_for(section: str, preset: str) -> object:
+    cls = _section_types()[section]
+    return cls.preset(preset) if hasattr(cls, "preset") else cls()
+
 
 @dataclass
 class RunConfig:
-    preset: str = "nuscenes"
+    """Everything ``pavemap run`` needs; a section per stage, each a typed dataclass with ``validate()``."""
+
+    preset: Preset = "nuscenes"
     device: str = "auto"
-    mesh: Any = None  # pavemap.mesh.MeshConfig
+    mesh: MeshConfig = field(default_factory=lambda: _section_for("mesh", "nuscenes"))
     detector: DetectorConfig = field(default_factory=DetectorConfig)
-    fusion: Any = None  # pavemap.fuse.FusionConfig
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig.preset("nuscenes"))
+    fusion: FusionConfig = field(default_factory=lambda: _section_for("fusion", "nuscenes"))
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict:
         return _to_plain(dataclasses.asdict(self))
+
+    def validate(self) -> None:
+        """Range-check every section; raise PavemapError naming ``section.field``."""
+        if self.preset not in PRESETS:
+            raise PavemapError(f"preset must be one of {', '.join(PRESETS)}, got {self.preset!r}")
+        if not self.device.strip():
+            raise PavemapError("device must be auto, cpu, cuda or cuda:N, got ''")
+        for section in SECTIONS:
+            getattr(self, section).validate()
 
 
 def _to_plain(o: Any) -> Any:
@@ -75,23 +123,245 @@ def _to_plain(o: Any) -> Any:
     return o
 
 
-def _section_classes() -> dict[str, type]:
-    from pavemap.fuse import FusionConfig
-    from pavemap.mesh import MeshConfig
+@functools.cache
+def field_types(cls: type) -> dict[str, Any]:
+    """``{field: type hint}`` of a config dataclass (string annotations resolved)."""
+    module = sys.modules[cls.__module__]
+    local = {c.__name__: c for c in _section_types().values()} if cls is RunConfig else None
+    hints = typing.get_type_hints(cls, globalns=vars(module), localns=local)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
-    return {"mesh": MeshConfig, "detector": DetectorConfig, "fusion": FusionConfig, "output": OutputConfig}
+
+def field_names() -> list[str]:
+    """Every key ``--set`` accepts: ``preset``, ``device`` and ``section.field`` for each section field."""
+    types_ = _section_types()
+    return ["device"] + [f"{s}.{f.name}" for s in SECTIONS for f in dataclasses.fields(types_[s])]
+
+
+# ---------------------------------------------------------------------------- values against type hints
+
+_TRUE = {"true", "yes", "on", "1"}
+_FALSE = {"false", "no", "off", "0"}
+_NONE = {"none", "null", "~", ""}
+
+
+class _MismatchError(Exception):
+    """A value that does not fit a type hint (turned into a PavemapError by :func:`coerce`)."""
+
+
+def describe(hint: Any) -> str:
+    """How an error message says what a type hint accepts: ``a number``, ``one of frame, mesh, both`` …"""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        parts = [describe(a) for a in args if a is not type(None)]
+        return " or ".join(parts) + (" or none" if type(None) in args else "")
+    if origin is Literal:
+        return "one of " + ", ".join(str(a) for a in args)
+    if origin in (tuple, list):
+        if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
+            return f"a list of {len(args)} values"
+        return "a list of " + {bool: "true/false values", int: "integers", float: "numbers",
+                               str: "strings"}.get(args[0] if args else str, "values")
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(hint, str(hint))
+
+
+def _split_list(text: str) -> list:
+    text = text.strip()
+    if text[:1] in "[(":
+        inner = text[1:-1] if text[-1:] in "])" else text[1:]
+        text = inner
+    return [t.strip() for t in text.split(",")] if text.strip() else []
+
+
+def _scalar(value: Any, hint: type, text: bool) -> Any:
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        if text and isinstance(value, str) and value.strip().lower() in _TRUE | _FALSE:
+            return value.strip().lower() in _TRUE
+    elif hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        if text and isinstance(value, str):
+            try:
+                f = float(value)
+            except ValueError:
+                raise _MismatchError from None
+            if f.is_integer():
+                return int(f)
+    elif hint is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        if text and isinstance(value, str):
+            try:
+                return float(value)
+            except ValueError:
+                raise _MismatchError from None
+    elif hint is str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, int) and not isinstance(value, bool):  # YAML `device: 0` means GPU "0"
+            return str(value)
+    elif hint is Path:
+        if isinstance(value, str | Path):
+            return Path(value)
+    else:
+        raise TypeError(f"config fields must be bool, int, float, str, Path, Literal, X | None, tuple or list; "
+                        f"got {hint!r}")
+    raise _MismatchError
+
+
+def _coerce(value: Any, hint: Any, text: bool) -> Any:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if type(None) in args and (value is None or (text and isinstance(value, str)
+                                                     and value.strip().lower() in _NONE)):
+            return None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, text)
+            except _MismatchError:
+                pass
+        raise _MismatchError
+    if value is None:
+        raise _MismatchError
+    if origin is Literal:
+        for a in args:
+            if value == a and type(value) is type(a):
+                return a
+            if text and isinstance(value, str) and value.strip() == str(a):
+                return a
+        raise _MismatchError
+    if origin in (tuple, list):
+        items = _split_list(value) if text and isinstance(value, str) else value
+        if not isinstance(items, list | tuple):
+            raise _MismatchError
+        if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
+            if len(items) != len(args):
+                raise _MismatchError
+            return tuple(_coerce(v, a, text) for v, a in zip(items, args, strict=True))
+        inner = args[0] if args else Any
+        out = [v if inner is Any else _coerce(v, inner, text) for v in items]
+        return tuple(out) if origin is tuple else out
+    if hint is Any:
+        raise TypeError("config fields need a type hint, not Any")
+    return _scalar(value, hint, text)
+
+
+def coerce(value: Any, hint: Any, name: str, source: str = "<config>", text: bool = False) -> Any:
+    """Check ``value`` against the type hint ``hint`` and return it in that type.
+
+    Handles bool, int, float, str, Path, ``Literal[...]``, ``X | None``, ``tuple[X, ...]``, fixed tuples and
+    ``list[X]``. ``text=True`` also parses command-line text (``"0.6"``, ``"true"``, ``"none"``,
+    ``"0.1,0.2"`` or ``"[0.1, 0.2]"``). A mismatch raises PavemapError
+    ``"<source>: <name> must be <what the hint accepts>, got <value>"``.
+    """
+    try:
+        return _coerce(value, hint, text)
+    except _MismatchError:
+        raise PavemapError(f"{source}: {name} must be {describe(hint)}, got {value!r}") from None
+
+
+# ---------------------------------------------------------------------------- applying values
+
+
+def _unknown_key(key: str, valid: Iterable[str], where: str, source: str,
+                 elsewhere: Iterable[str] = ()) -> PavemapError:
+    valid = sorted(valid)
+    moved = [k for k in elsewhere if k.rpartition(".")[2] == key]
+    near = moved or difflib.get_close_matches(key, valid, n=1, cutoff=0.5)
+    hint = f"; did you mean {near[0]!r}?" if near else f"; valid keys: {', '.join(valid)}"
+    return PavemapError(f"{source}: unknown key {key!r} in {where}{hint}")
+
+
+def _set_field(obj: object, section: str, key: str, value: Any, source: str, text: bool) -> None:
+    hints = field_types(type(obj))
+    if key not in hints:
+        others = [k for k in field_names() if not k.startswith(f"{section}.")]
+        raise _unknown_key(key, hints, f"section {section!r}", source, others)
+    setattr(obj, key, coerce(value, hints[key], f"{section}.{key}", source, text))
+
+
+def _set_top(cfg: RunConfig, key: str, value: Any, source: str, text: bool) -> None:
+    setattr(cfg, key, coerce(value, field_types(RunConfig)[key], key, source, text))
+
+
+def _validated(cfg: RunConfig, source: str) -> RunConfig:
+    try:
+        cfg.validate()
+    except PavemapError as e:
+        raise PavemapError(f"{source}: {e}") from None
+    return cfg
+
+
+def apply_overrides(cfg: RunConfig, data: dict, file: str = "<config>") -> RunConfig:
+    """Apply a parsed YAML mapping onto ``cfg`` and validate it; unknown keys and wrong types raise PavemapError."""
+    if not isinstance(data, dict):
+        raise PavemapError(f"{file}: top level must be a mapping of sections")
+    for key, value in data.items():
+        if key in SECTIONS:
+            if value is None:
+                continue
+            if not isinstance(value, dict):
+                raise PavemapError(f"{file}: section {key!r} must be a mapping")
+            for k, v in value.items():
+                _set_field(getattr(cfg, key), key, str(k), v, file, text=False)
+        elif key in TOP_LEVEL:
+            _set_top(cfg, key, value, file, text=False)
+        else:
+            raise _unknown_key(str(key), (*TOP_LEVEL, *SECTIONS), "the top level", file)
+    return _validated(cfg, file)
+
+
+# Several pairs in one --set value: split where the next `section.field=` starts.
+_NEXT_PAIR = re.compile(r"\s+(?=[A-Za-z_]\w*\.[A-Za-z_]\w*=)")
+
+
+def parse_overrides(items: Iterable[str]) -> list[tuple[str, str]]:
+    """``["fusion.tau_road=0.6 mesh.epochs=3", "device=cpu"]`` → ``[(key, text), ...]`` in order."""
+    pairs = []
+    for item in items:
+        for part in _NEXT_PAIR.split(item.strip()):
+            if not part:
+                continue
+            key, sep, value = part.partition("=")
+            if not sep or not key.strip():
+                raise PavemapError(f"--set {part!r}: expected section.field=value, e.g. fusion.hit_radius_m=0.4")
+            pairs.append((key.strip(), value.strip()))
+    return pairs
+
+
+def apply_text_overrides(cfg: RunConfig, items: Iterable[str], source: str = "--set") -> RunConfig:
+    """Apply command-line ``section.field=value`` overrides (:func:`parse_overrides`) and validate."""
+    pairs = parse_overrides(items)
+    for key, value in pairs:
+        where = f"{source} {key}={value}"
+        section, dot, name = key.partition(".")
+        if not dot:
+            if key == "preset":
+                raise PavemapError(f"{where}: choose the preset with --config nuscenes|kitti")
+            if key not in TOP_LEVEL:
+                raise _unknown_key(key, field_names(), "the config", where, field_names())
+            _set_top(cfg, key, value, where, text=True)
+        elif section not in SECTIONS:
+            raise _unknown_key(section, SECTIONS, "the config's sections", where)
+        else:
+            _set_field(getattr(cfg, section), section, name, value, where, text=True)
+    return _validated(cfg, source) if pairs else cfg
+
+
+# ---------------------------------------------------------------------------- presets and files
 
 
 def preset_config(name: str) -> RunConfig:
     """The paper's parameters (SPEC, its Table 2) for ``nuscenes`` or ``kitti``."""
     if name not in PRESETS:
         raise PavemapError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)} or a .yaml file")
-    classes = _section_classes()
-    return RunConfig(
-        preset=name,
-        mesh=classes["mesh"].preset(name),
-        fusion=classes["fusion"].preset(name),
-    )
+    return RunConfig(preset=name, **{s: _section_for(s, name) for s in SECTIONS})  # type: ignore[arg-type]
 
 
 def preset_for(seq: object) -> tuple[str, str]:
@@ -107,84 +377,38 @@ def preset_for(seq: object) -> tuple[str, str]:
     return "nuscenes", f"{n} cameras: a surround rig, so the nuscenes preset"
 
 
-def _unknown_key(key: str, valid: typing.Iterable[str], where: str, file: str) -> PavemapError:
-    valid = sorted(valid)
-    near = difflib.get_close_matches(key, valid, n=1, cutoff=0.5)
-    hint = f"; did you mean {near[0]!r}?" if near else f"; valid keys: {', '.join(valid)}"
-    return PavemapError(f"{file}: unknown key {key!r} in {where}{hint}")
+def load_config(spec: str | os.PathLike | None, default_preset: str = "nuscenes",
+                overrides: Iterable[str] = ()) -> RunConfig:
+    """Resolve ``--config`` and ``--set``: a preset name, a YAML file (optionally naming a base ``preset``,
+    else ``default_preset``) or None (``default_preset``), then ``section.field=value`` overrides.
+
+    The result is validated: a bad key, type or range raises PavemapError naming the file and field.
+    """
+    if spec is None or str(spec) in PRESETS:
+        cfg = _validated(preset_config(default_preset if spec is None else str(spec)), "preset")
+    else:
+        cfg = _load_yaml(Path(spec), default_preset)
+    return apply_text_overrides(cfg, overrides)
 
 
-def _coerce(value: Any, current: Any, key: str, where: str, file: str) -> Any:
-    """Check a YAML value against the type of the default it replaces."""
-    if current is None or value is None:
-        return value
-    if isinstance(current, bool):
-        if not isinstance(value, bool):
-            raise PavemapError(f"{file}: {where}.{key} must be true or false, got {value!r}")
-        return value
-    if isinstance(current, int | float) and not isinstance(current, bool):
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise PavemapError(f"{file}: {where}.{key} must be a number, got {value!r}")
-        return type(current)(value) if isinstance(current, float) or float(value).is_integer() else value
-    if isinstance(current, str):
-        if not isinstance(value, str):
-            raise PavemapError(f"{file}: {where}.{key} must be a string, got {value!r}")
-        return value
-    if isinstance(current, tuple | list):
-        if not isinstance(value, list | tuple):
-            raise PavemapError(f"{file}: {where}.{key} must be a list, got {value!r}")
-        return tuple(value) if isinstance(current, tuple) else list(value)
-    return value
-
-
-def apply_overrides(cfg: RunConfig, data: dict, file: str = "<config>") -> RunConfig:
-    """Apply a parsed YAML mapping onto ``cfg``; unknown keys and wrong types raise PavemapError."""
-    if not isinstance(data, dict):
-        raise PavemapError(f"{file}: top level must be a mapping of sections")
-    top = {"preset", "device", "mesh", "detector", "fusion", "output"}
-    for key in data:
-        if key not in top:
-            raise _unknown_key(key, top, "the top level", file)
-    if "device" in data:
-        cfg.device = str(data["device"])
-    for section in ("mesh", "detector", "fusion", "output"):
-        values = data.get(section)
-        if values is None:
-            continue
-        if not isinstance(values, dict):
-            raise PavemapError(f"{file}: section {section!r} must be a mapping")
-        obj = getattr(cfg, section)
-        names = {f.name for f in dataclasses.fields(obj)}
-        for key, value in values.items():
-            if key not in names:
-                raise _unknown_key(key, names, f"section {section!r}", file)
-            setattr(obj, key, _coerce(value, getattr(obj, key), key, section, file))
-    if cfg.detector.backend not in ("sim", "yolo", "file"):
-        raise PavemapError(f"{file}: detector.backend must be sim, yolo or file, got {cfg.detector.backend!r}")
-    return cfg
-
-
-def load_config(spec: str | os.PathLike | None, default_preset: str = "nuscenes") -> RunConfig:
-    """Resolve ``--config``: a preset name, a YAML file (optionally naming a base ``preset``), or None."""
-    if spec is None:
-        return preset_config(default_preset)
-    spec = str(spec)
-    if spec in PRESETS:
-        return preset_config(spec)
-    path = Path(spec)
+def _load_yaml(path: Path, default_preset: str) -> RunConfig:
     if not path.is_file():
-        raise PavemapError(f"config {spec!r} is neither a preset ({', '.join(PRESETS)}) nor an existing YAML file")
+        raise PavemapError(f"config {str(path)!r} is neither a preset ({', '.join(PRESETS)}) nor an existing "
+                           "YAML file")
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as e:
-        raise PavemapError(f"{path}: invalid YAML ({e})") from None
+        raise PavemapError(f"{path}: invalid YAML ({' '.join(str(e).split())})") from None
     if not isinstance(data, dict):
         raise PavemapError(f"{path}: top level must be a mapping of sections")
-    base = data.get("preset", default_preset)
-    if base not in PRESETS:
-        raise PavemapError(f"{path}: preset must be one of {', '.join(PRESETS)}, got {base!r}")
+    base = coerce(data.get("preset", default_preset), field_types(RunConfig)["preset"], "preset", str(path))
     return apply_overrides(preset_config(base), data, str(path))
 
 
 def dump_config(cfg: RunConfig) -> str:
     return yaml.safe_dump(cfg.to_dict(), sort_keys=False)
+
+
+__all__ = ["PRESETS", "SECTIONS", "DetectorConfig", "FilterConfig", "OutputConfig", "RunConfig", "apply_overrides",
+           "apply_text_overrides", "coerce", "dump_config", "field_names", "field_types", "load_config",
+           "parse_overrides", "preset_config", "preset_for"]

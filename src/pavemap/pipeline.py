@@ -1,9 +1,12 @@
-"""End to end: stage 1 (mesh) -> detection -> filter + fusion -> evaluation -> outputs.
+"""End to end: stage 1 (mesh) -> detection -> filter -> fusion -> evaluation -> outputs.
 
-Each stage writes into the run folder and leaves a stamp ``.stages/<stage>.json`` holding
-the hash of its inputs and config; a rerun skips a stage whose stamp matches, so an
-interrupted run resumes where it stopped and a changed setting redoes only what depends
-on it.
+Stages 1 and 2a keep their results in the run folder (``mesh/``, ``detections.jsonl``) and leave
+a stamp ``.stages/<stage>.json`` holding the hash of their inputs and config; a rerun skips a
+stage whose stamp matches, so an interrupted run resumes where it stopped and a changed setting
+redoes only what depends on it. The filter, fusion and evaluation are cheap and return results
+in memory; :func:`pavemap.export.run_files.write_run` then writes every result file once.
+The pipeline itself writes only the folder's bookkeeping: ``run.json``, ``config.yaml``,
+``run.log`` and the stamps.
 """
 
 from __future__ import annotations
@@ -16,14 +19,20 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pavemap.config import RunConfig, dump_config
+from pavemap.detect.config import DetectorConfig, FilterConfig
 from pavemap.errors import PavemapError
+from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_write_json, atomic_write_text
 from pavemap.io.sequence import DETECTIONS_FILE, SEQUENCE_FILE, read_detections, read_sequence
-from pavemap.types import DefectInstance, Sequence
+from pavemap.types import DefectInstance, Detection, GeoOrigin, Sequence
+
+if TYPE_CHECKING:  # torch loads when a stage runs, not on import
+    from pavemap.fuse import FusionConfig, FusionResult
 
 RUN_FILE = "run.json"
 STAGES = ("mesh", "detect", "fuse", "evaluate", "export")
@@ -38,20 +47,24 @@ class RunResult:
     defects: list[DefectInstance]
     prob_map: np.ndarray  # (H, W) float32 total defect probability
     class_maps: np.ndarray  # (4, H, W) float32 per class
-    grid: dict  # x0, y0, res, shape of the maps
+    grid: GridSpec  # the maps' grid
     metrics: dict
     evaluation: dict | None = None
     files: dict[str, Path] = field(default_factory=dict)
+    geo_origin: GeoOrigin | None = None
+    preset: str = ""  # the preset the run started from, and why (when chosen from the rig)
+    detector: str = ""  # the backend that ran, and why (``auto`` resolved)
 
     def to_geojson(self) -> dict:
+        """The defects as written to ``defects.geojson`` (lon/lat when the sequence has a geo origin)."""
         from pavemap.export.geojson import instances_to_geojson
 
-        return instances_to_geojson(self.defects)
+        return instances_to_geojson(self.defects, self.geo_origin)
 
     def to_dataframe(self):  # noqa: ANN201 - pandas is optional
         from pavemap.export.tables import to_dataframe
 
-        return to_dataframe(self.defects)
+        return to_dataframe(self.defects, self.geo_origin)
 
     def summary(self) -> str:
         by = {}
@@ -164,35 +177,22 @@ def _setup_log(out: Path) -> logging.Handler:
     return handler
 
 
-def resolve_device(device: str) -> str:
-    import torch
-
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise PavemapError(f"--device {device}: CUDA is not available on this machine (use auto or cpu)")
-    if device not in ("cpu",) and not device.startswith("cuda"):
-        raise PavemapError(f"--device must be auto, cpu, cuda or cuda:N, got {device!r}")
-    return device
-
-
 # ---------------------------------------------------------------------------- stages
 
 
-def _detect(seq: Sequence, cfg: RunConfig, out: Path) -> Path:
+def _detect(seq: Sequence, d: DetectorConfig, device: str, out: Path) -> Path:
+    """Stage 2a with a resolved backend (:func:`pavemap.detect.backends.resolve_backend`) -> detections.jsonl."""
     det_path = out / DETECTIONS_FILE
-    d = cfg.detector
     if d.backend == "sim":
         from pavemap.synth.simdetector import detect_sequence as sim_detect
 
         sim_detect(seq, seed=d.seed, out=det_path)
     elif d.backend == "yolo":
-        if not d.weights:
-            raise PavemapError("detector.backend is yolo but no weights were given (--weights PATH.pt)")
         from pavemap.detect.yolo import detect_sequence as yolo_detect
 
+        assert d.weights is not None  # resolve_backend sets them
         yolo_detect(
-            seq, weights=Path(d.weights), out=det_path, imgsz=d.imgsz, conf=d.conf, device=cfg.device,
+            seq, weights=Path(d.weights), out=det_path, imgsz=d.imgsz, conf=d.conf, device=device,
             batch=d.batch, class_map=Path(d.class_map) if d.class_map else None,
         )
     else:  # file
@@ -200,12 +200,26 @@ def _detect(seq: Sequence, cfg: RunConfig, out: Path) -> Path:
         if src is None or not src.exists():
             raise PavemapError(f"detector.backend is file but {src} does not exist (give --detections FILE)")
         from pavemap.detect.sources import load_detections
-
-        dets = load_detections(src, seq)
         from pavemap.io.sequence import write_detections
 
-        write_detections(det_path, dets)
+        write_detections(det_path, load_detections(src, seq))
     return det_path
+
+
+def filter_and_fuse(seq: Sequence, detections: list[Detection], surface, filter_config: FilterConfig,  # noqa: ANN001
+                    fusion_config: FusionConfig, mesh: object | None = None, progress: bool = True) -> FusionResult:
+    """Stage 2b then stage 3: the road filter (:mod:`pavemap.detect`), then fusion (:mod:`pavemap.fuse`).
+
+    ``surface`` is a HeightField; ``mesh`` (optional) supplies the mesh road mask. Returns a FusionResult.
+    """
+    import torch
+
+    from pavemap.detect.filter import filter_detections
+    from pavemap.fuse import fuse
+
+    with torch.no_grad():
+        filtered = filter_detections(seq, detections, filter_config, mesh=mesh)
+        return fuse(seq, filtered, surface, fusion_config, progress=progress)
 
 
 def run(
@@ -217,31 +231,43 @@ def run(
 ) -> RunResult:
     """Run the whole pipeline on a sequence folder and write every output into ``out_dir``.
 
+    Without ``config`` the preset that fits the rig is used (:func:`pavemap.config.preset_for`);
+    ``detector.backend: auto`` becomes ``sim`` on a synthetic sequence, else the shipped YOLO weights.
+    Both choices are logged and returned in ``RunResult.preset`` / ``RunResult.detector``.
+
     >>> result = pavemap.run("my_seq", pavemap.load_config("nuscenes"), "runs/my_seq")  # doctest: +SKIP
     """
-    from pavemap.config import preset_config
+    from pavemap.config import preset_config, preset_for
+    from pavemap.detect.backends import resolve_backend
+    from pavemap.device import resolve_device
 
     if not isinstance(seq, Sequence):
         seq = read_sequence(seq)
-    cfg = config if config is not None else preset_config("nuscenes")
-    device = resolve_device(cfg.device)
+    if config is None:
+        name, why = preset_for(seq)
+        cfg, preset_note = preset_config(name), f"{name} ({why})"
+    else:
+        cfg, preset_note = config, f"{config.preset} (given)"
+    cfg.validate()
+    device = str(resolve_device(cfg.device))
+    detector, why = resolve_backend(cfg.detector, seq)  # a missing input stops here, before any stage
     out = Path(out_dir) if out_dir is not None else Path("runs") / seq.name
     _prepare_out(out, seq, overwrite)
     handler = _setup_log(out)
     try:
-        return _run(seq, cfg, device, out, progress)
+        log.info("preset %s", preset_note)
+        log.info("detector %s (%s)", detector.backend, why)
+        result = _run(seq, cfg, detector, device, out, progress)
+        result.preset, result.detector = preset_note, f"{detector.backend} ({why})"
+        return result
     finally:
         log.removeHandler(handler)
         handler.close()
 
 
-def _run(seq: Sequence, cfg: RunConfig, device: str, out: Path, progress: bool) -> RunResult:
+def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, out: Path,
+         progress: bool) -> RunResult:
     import dataclasses
-
-    import torch
-
-    from pavemap.fuse import fuse, write_fusion
-    from pavemap.mesh import load_mesh, reconstruct
 
     stages = _Stages(out)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
@@ -249,45 +275,30 @@ def _run(seq: Sequence, cfg: RunConfig, device: str, out: Path, progress: bool) 
     log.info("run %s on %s (device %s)", seq.name, seq.root, device)
     timings: dict[str, float] = {}
 
-    # Stage 1: the road mesh.
     mesh_dir = out / "mesh"
-    mesh_cfg = dataclasses.replace(cfg.mesh, device=device) if hasattr(cfg.mesh, "device") else cfg.mesh
-    key = _hash(seq_key, dataclasses.asdict(mesh_cfg))
-    t = time.perf_counter()
-    if stages.done("mesh", key) and (mesh_dir / "metrics.json").is_file():
-        log.info("mesh: up to date, reusing %s", mesh_dir)
-        mesh = load_mesh(mesh_dir)
-        timings["mesh"] = stages.seconds("mesh") or 0.0
-    else:
-        stages.invalidate_after("mesh")
-        log.info("mesh: reconstructing")
-        mesh, _ = reconstruct(seq, mesh_dir, mesh_cfg, progress=progress)
-        timings["mesh"] = time.perf_counter() - t
-        stages.mark("mesh", key, timings["mesh"])
+    mesh, timings["mesh"] = _mesh_stage(seq, cfg, device, seq_key, stages, mesh_dir, progress)
 
     # Stage 2a: detection.
-    det_cfg = dataclasses.asdict(cfg.detector)
-    det_src = _file_hash(Path(cfg.detector.weights)) if cfg.detector.weights else None
-    key = _hash(seq_key, det_cfg, det_src, _file_hash(Path(cfg.detector.file)) if cfg.detector.file else None)
+    det_src = _file_hash(Path(detector.weights)) if detector.weights else None
+    key = _hash(seq_key, dataclasses.asdict(detector), det_src,
+                _file_hash(Path(detector.file)) if detector.file else None)
     t = time.perf_counter()
     if stages.done("detect", key) and (out / DETECTIONS_FILE).is_file():
         log.info("detect: up to date")
         timings["detect"] = stages.seconds("detect") or 0.0
     else:
         stages.invalidate_after("detect")
-        log.info("detect: backend %s", cfg.detector.backend)
-        _detect(seq, cfg, out)
+        log.info("detect: backend %s", detector.backend)
+        _detect(seq, detector, device, out)
         timings["detect"] = time.perf_counter() - t
         stages.mark("detect", key, timings["detect"])
     detections = read_detections(out / DETECTIONS_FILE)
 
-    # Stages 2b + 3: filter and fusion (cheap: always redone, so its result is in memory).
+    # Stages 2b + 3: filter, then fusion (cheap: always redone, so the result is in memory).
     t = time.perf_counter()
-    with torch.no_grad():
-        result = fuse(seq, detections, mesh.surface, cfg.fusion, mesh=mesh, progress=progress)
-    write_fusion(result, out)
+    result = filter_and_fuse(seq, detections, mesh.surface, cfg.filter, cfg.fusion, mesh=mesh, progress=progress)
     timings["fuse"] = time.perf_counter() - t
-    stages.mark("fuse", _hash(key, dataclasses.asdict(cfg.fusion)), timings["fuse"])
+    stages.mark("fuse", _hash(key, dataclasses.asdict(cfg.filter), dataclasses.asdict(cfg.fusion)), timings["fuse"])
     log.info("fuse: %d detections in, %d defects", len(detections), len(result.instances))
 
     # Evaluation against synthetic truth, when the sequence has it.
@@ -296,25 +307,19 @@ def _run(seq: Sequence, cfg: RunConfig, device: str, out: Path, progress: bool) 
         from pavemap.evaluate import evaluate
 
         t = time.perf_counter()
-        evaluation = evaluate(out, seq.root)
-        atomic_write_json(out / "eval.json", evaluation)
+        evaluation = evaluate(result, seq.root)
         timings["evaluate"] = time.perf_counter() - t
 
     metrics = dict(result.metrics)
     metrics["seconds"] = {k: round(v, 3) for k, v in timings.items()}
+    metrics["detector"] = detector.backend
     mesh_metrics_file = mesh_dir / "metrics.json"
     if mesh_metrics_file.is_file():
         metrics["mesh"] = json.loads(mesh_metrics_file.read_text())
     if evaluation is not None:
         metrics["evaluation"] = evaluation
 
-    # Outputs people use.
-    t = time.perf_counter()
-    files = _export(seq, cfg, out, mesh, mesh_dir, result, metrics)
-    timings["export"] = time.perf_counter() - t
-    metrics["seconds"]["export"] = round(timings["export"], 3)
-    metrics["seconds"]["total"] = round(sum(timings.values()), 3)
-    atomic_write_json(out / "metrics.json", metrics)
+    files = _export(seq, cfg, out, mesh, mesh_dir, result, metrics, evaluation, progress)
     log.info("done in %.1f s", metrics["seconds"]["total"])
     return RunResult(
         out_dir=out,
@@ -325,30 +330,39 @@ def _run(seq: Sequence, cfg: RunConfig, device: str, out: Path, progress: bool) 
         metrics=metrics,
         evaluation=evaluation,
         files=files,
+        geo_origin=seq.geo_origin,
     )
 
 
-def _export(seq, cfg, out, mesh, mesh_dir, result, metrics) -> dict[str, Path]:  # noqa: ANN001
-    from pavemap.export import write_outputs
+def _mesh_stage(seq: Sequence, cfg: RunConfig, device: str, seq_key: str, stages: _Stages, mesh_dir: Path,
+                progress: bool) -> tuple[object, float]:
+    """Stage 1: the road mesh, reused when its stamp matches. Returns (RoadMesh, seconds)."""
+    import dataclasses
+
+    from pavemap.mesh import load_mesh, reconstruct
+
+    mesh_cfg = dataclasses.replace(cfg.mesh, device=device) if hasattr(cfg.mesh, "device") else cfg.mesh
+    key = _hash(seq_key, dataclasses.asdict(mesh_cfg))
+    if stages.done("mesh", key) and (mesh_dir / "metrics.json").is_file():
+        log.info("mesh: up to date, reusing %s", mesh_dir)
+        return load_mesh(mesh_dir), stages.seconds("mesh") or 0.0
+    t = time.perf_counter()
+    stages.invalidate_after("mesh")
+    log.info("mesh: reconstructing")
+    mesh, _ = reconstruct(seq, mesh_dir, mesh_cfg, progress=progress)
+    seconds = time.perf_counter() - t
+    stages.mark("mesh", key, seconds)
+    return mesh, seconds
+
+
+def _export(seq, cfg, out, mesh, mesh_dir, result, metrics, evaluation, progress) -> dict[str, Path]:  # noqa: ANN001
+    from pavemap.export.run_files import write_run
+    from pavemap.fuse.core import surface_grid
     from pavemap.mesh import bev_rasters
 
     bev = bev_rasters(mesh, seq.classes)
-    s = mesh.surface
-    mesh_grid = {"x0": s.x0, "y0": s.y0, "res": s.res, "shape": list(s.heights.shape)}
-    return write_outputs(
-        out,
-        instances=result.instances,
-        prob_map=result.prob_map,
-        class_maps=result.class_maps,
-        grid=result.grid,
-        bev_rgb=bev["rgb"],
-        bev_semantic=bev["semantic_rgb"],
-        mesh_grid=mesh_grid,
-        geo_origin=seq.geo_origin,
-        metrics=metrics,
-        config=cfg.to_dict(),
-        detections=result.detections,
-        seq=seq,
-        output=cfg.output,
-        mesh_path=mesh_dir / "mesh.ply",
+    return write_run(
+        out, result, metrics, seq=seq, geo_origin=seq.geo_origin, evaluation=evaluation, config=cfg.to_dict(),
+        output=cfg.output, bev_rgb=bev["rgb"], bev_semantic=bev["semantic_rgb"],
+        mesh_grid=surface_grid(mesh.surface), mesh_path=mesh_dir / "mesh.ply", progress=progress,
     )

@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
+import enum
 from pathlib import Path
 
 import typer
 
+from pavemap.commands import options as opt
 from pavemap.errors import PavemapError
+
+
+class Surface(enum.StrEnum):
+    """The surface ``pavemap fuse`` casts detections onto."""
+
+    auto = "auto"
+    mesh = "mesh"
+    truth = "truth"
+    plane = "plane"
 
 
 def _surface(kind: str, seq, mesh_dir: Path | None):  # noqa: ANN001, ANN202
@@ -24,9 +35,9 @@ def _surface(kind: str, seq, mesh_dir: Path | None):  # noqa: ANN001, ANN202
             raise PavemapError("--surface mesh needs --mesh DIR (a stage-1 output folder)")
         return mesh.surface, mesh
     if kind == "truth":
-        from pavemap.geometry import HeightField
+        from pavemap.io.truth import read_truth_height
 
-        return HeightField.from_truth(seq.root), mesh
+        return read_truth_height(seq.root), mesh
     if kind == "plane":
         import numpy as np
 
@@ -53,50 +64,43 @@ def register(app: typer.Typer) -> None:
         detections: Path | None = typer.Option(
             None, "--detections", help="detections.jsonl or a folder of YOLO txt files (default SEQ/detections.jsonl)."
         ),
-        out: Path = typer.Option(..., "--out", help="Output folder."),
-        association: str | None = typer.Option(None, help="ray | hit | footprint (default: preset's)."),
-        mask: str | None = typer.Option(None, help="Road mask for the filter: frame | mesh | both."),
-        surface: str = typer.Option(
-            "auto", help="Surface: mesh | truth (synthetic) | plane (z=0); auto = mesh if --mesh, else truth/plane."
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+        surface: Surface = typer.Option(
+            Surface.auto, help="mesh (needs --mesh), truth (synthetic), plane (z = 0); auto: mesh with --mesh, "
+            "else truth where the sequence has it, else plane."
         ),
-        preset: str = typer.Option("nuscenes", help="Fusion preset: nuscenes (tau_conf 0.05) | kitti (0.10)."),
-        tau_conf: float | None = typer.Option(None, help="Confidence threshold."),
-        tau_road: float | None = typer.Option(None, help="Road-overlap threshold."),
-        n_min: int | None = typer.Option(None, help="Observations for a defect vertex."),
+        config: str | None = opt.CONFIG,
+        sets: list[str] | None = opt.SET,
         truth: bool = typer.Option(True, help="Also write eval.json when the sequence has truth."),
     ) -> None:
         """Filter detections, cast them onto the road surface and fuse them into defect instances."""
         from pavemap.detect.sources import load_detections
-        from pavemap.fuse import FusionConfig, write_fusion
-        from pavemap.fuse import fuse as run_fuse
-        from pavemap.io.atomic import atomic_write_json
+        from pavemap.export.run_files import write_fusion_outputs
         from pavemap.io.sequence import DETECTIONS_FILE, read_sequence
+        from pavemap.pipeline import filter_and_fuse
 
         s = read_sequence(seq)
-        cfg = FusionConfig.preset(preset)
-        for name, value in (("association", association), ("mask", mask), ("tau_conf", tau_conf),
-                            ("tau_road", tau_road), ("n_min", n_min)):
-            if value is not None:
-                setattr(cfg, name, value)
-        cfg.validate()
+        rc = opt.resolve_config(s, config, sets)
+        cfg = rc.fusion
         det_path = detections if detections is not None else seq / DETECTIONS_FILE
         if not det_path.exists():
             raise PavemapError(f"{det_path}: no detections (run `pavemap detect {seq}` or give --detections)")
         dets = load_detections(det_path, s)
-        surf, m = _surface(surface, s, mesh)
-        result = run_fuse(s, dets, surf, cfg, mesh=m)
-        write_fusion(result, out)
+        surf, m = _surface(surface.value, s, mesh)
+        result = filter_and_fuse(s, dets, surf, rc.filter, cfg, mesh=m)
+        ev = None
+        if truth and (seq / "truth" / "defects.geojson").is_file():
+            from pavemap.evaluate import evaluate
+
+            ev = evaluate(result, seq)
+        write_fusion_outputs(out, result, s.geo_origin, evaluation=ev)
         mt = result.metrics
         typer.echo(
             f"{mt['input_detections']} detections: {mt['invalid_detections']} invalid, {mt['below_conf']} below "
             f"conf, {mt['filtered_detections']} off road (FR {mt['filter_rate']:.1%}), {mt['valid_detections']} "
             f"valid, MSR {mt['msr']:.1%} -> {len(result.instances)} defects in {out}"
         )
-        if truth and (seq / "truth" / "defects.geojson").is_file():
-            from pavemap.evaluate import evaluate
-
-            ev = evaluate(out, seq)
-            atomic_write_json(out / "eval.json", ev)
+        if ev is not None:
             typer.echo(_eval_line(ev))
 
     @app.command(name="eval")
@@ -106,10 +110,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Score a run's defects against ground truth -> RUN/eval.json."""
         from pavemap.evaluate import evaluate
-        from pavemap.io.atomic import atomic_write_json
+        from pavemap.export.run_files import write_eval
 
         ev = evaluate(run, truth)
-        atomic_write_json(run / "eval.json", ev)
+        write_eval(run, ev)
         typer.echo(_eval_line(ev))
         typer.echo(f"-> {run / 'eval.json'}")
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import typer
 
+from pavemap.commands.options import DEVICE_HELP
 from pavemap.types import Sequence
 
 imports_app = typer.Typer(name="import", help="Import real data (KITTI, nuScenes, own images or video).",
@@ -23,7 +24,7 @@ _CLASS_MAP = typer.Option(
 )
 _SEGMENTER = typer.Option(None, "--segmenter", help="ultralytics semantic-segmentation weights (.pt).")
 _NO_SEM = typer.Option(False, "--no-semantics", help="Write no semantic masks (no fallback either).")
-_DEVICE = typer.Option("auto", help="Segmenter device: auto, cpu, cuda or cuda:N.")
+_DEVICE = typer.Option("auto", help=f"Segmenter device: {DEVICE_HELP}.")
 
 
 def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, segmenter: Path | None,

@@ -2,47 +2,39 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
 import typer
 
-from pavemap.errors import PavemapError
+from pavemap.commands import options as opt
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
     def reconstruct(
         seq: Path = typer.Argument(..., help="Sequence folder."),
-        out: Path = typer.Option(..., "--out", help="Output folder (mesh.ply, BEV rasters, metrics.json)."),
-        epochs: int | None = typer.Option(None, help="Training epochs (default 7)."),
-        device: str = typer.Option("auto", help="auto, cpu or cuda."),
-        preset: str = typer.Option("nuscenes", help="nuscenes (crop 7 m, L=5) or kitti (crop 5 m, L=4)."),
-        render_scale: float | None = typer.Option(None, help="Training image scale (speed/accuracy)."),
-        resume: bool = typer.Option(True, help="Continue from OUT/checkpoint.pt when it matches."),
-        pose_refine: bool = typer.Option(False, help="Refine a small SE(3) correction per view: Gauss-Newton "
-                                         "alignment to the baked texture and depth, then joint Adam steps."),
-        pose_per: str = typer.Option("frame", help="With --pose-refine: one correction per frame (the rig moves "
-                                     "as one) or per view (each camera on its own)."),
-        pose_prior_deg: float = typer.Option(0.3, help="With --pose-refine: accuracy of the raw rotations (deg)."),
-        pose_prior_m: float = typer.Option(0.2, help="With --pose-refine: accuracy of the raw positions (m)."),
-        seed: int = typer.Option(0, help="Random seed."),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder (mesh.ply, BEV rasters, metrics.json)."),
+        config: str | None = opt.CONFIG,
+        sets: list[str] | None = opt.SET,
+        epochs: int | None = opt.EPOCHS,
+        device: str | None = opt.DEVICE,
+        seed: int | None = typer.Option(None, help="Random seed (= --set mesh.seed=N)."),
+        resume: bool | None = typer.Option(None, "--resume/--no-resume", help="Continue from OUT/checkpoint.pt "
+                                           "when it matches (= --set mesh.resume=...). Default: the config's, on."),
+        pose_refine: bool | None = typer.Option(
+            None, "--pose-refine/--no-pose-refine", help="Refine a small SE(3) correction per frame (= --set "
+            "mesh.pose_refine=...; mesh.pose_per, mesh.pose_prior_deg, mesh.pose_prior_m tune it). Default: off."),
     ) -> None:
         """Reconstruct the road surface mesh (height, colour, semantics) from a sequence."""
         from pavemap.io.sequence import read_sequence
-        from pavemap.mesh import MeshConfig
         from pavemap.mesh import reconstruct as run
 
         s = read_sequence(seq)
-        cfg = MeshConfig.preset(preset)
-        cfg.device, cfg.resume, cfg.pose_refine, cfg.seed = device, resume, pose_refine, seed
-        cfg.pose_prior_deg, cfg.pose_prior_m, cfg.pose_per = pose_prior_deg, pose_prior_m, pose_per
-        if epochs is not None:
-            if epochs < 0:
-                raise PavemapError("--epochs must be >= 0")
-            cfg.epochs = epochs
-        if render_scale is not None:
-            cfg.render_scale = render_scale
+        rc = opt.resolve_config(s, config, sets, {"device": device, "mesh.epochs": epochs, "mesh.seed": seed,
+                                                  "mesh.resume": resume, "mesh.pose_refine": pose_refine})
+        cfg = dataclasses.replace(rc.mesh, device=rc.device)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             _, m = run(s, out, cfg, progress=True)

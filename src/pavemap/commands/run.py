@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from pavemap.errors import PavemapError
+from pavemap.commands import options as opt
 
 # The demo scene: nuScenes-like rig (6 cameras) on a shorter drive at quarter resolution,
 # sized so synth + mesh + fusion + report finish in about 1.5-3 minutes on a 2-core CPU.
@@ -21,38 +21,25 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def run(
         seq: Path = typer.Argument(..., help="Sequence folder (see README: the sequence folder)."),
-        out: Path = typer.Option(..., "--out", help="Run folder for all outputs."),
-        config: str = typer.Option("nuscenes", help="Preset (nuscenes, kitti) or a YAML config file."),
-        detector: str | None = typer.Option(None, help="sim, yolo or file (overrides the config)."),
-        weights: Path | None = typer.Option(None, help="YOLO weights (.pt) for --detector yolo."),
-        detections: Path | None = typer.Option(None, help="A detections file for --detector file."),
-        device: str | None = typer.Option(None, help="auto, cpu, cuda (overrides the config)."),
-        epochs: int | None = typer.Option(None, help="Mesh training epochs (overrides the config)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Run folder for all outputs."),
+        config: str | None = opt.CONFIG,
+        sets: list[str] | None = opt.SET,
+        detector: opt.Detector | None = opt.DETECTOR,
+        weights: Path | None = opt.WEIGHTS,
+        detections: Path | None = opt.DETECTIONS,
+        device: str | None = opt.DEVICE,
+        epochs: int | None = opt.EPOCHS,
         overwrite: bool = typer.Option(False, help="Replace a run folder that holds another run."),
     ) -> None:
         """Run stage 1 (mesh), detection, filtering, fusion and all outputs on a sequence."""
-        from pavemap.config import load_config
+        from pavemap.io.sequence import read_sequence
         from pavemap.pipeline import run as run_pipeline
 
-        cfg = load_config(config)
-        if detector is not None:
-            cfg.detector.backend = detector
-        if weights is not None:
-            cfg.detector.backend = "yolo" if detector is None else cfg.detector.backend
-            cfg.detector.weights = str(weights)
-        if detections is not None:
-            cfg.detector.backend = "file" if detector is None else cfg.detector.backend
-            cfg.detector.file = str(detections)
-        if cfg.detector.backend == "yolo" and cfg.detector.weights and not Path(cfg.detector.weights).is_file():
-            raise PavemapError(
-                f"weights file {cfg.detector.weights} not found; put a YOLO detection .pt there "
-                "(e.g. models/pavemap-yolov8n-rdd2022-cn.pt) or train one with `pavemap train-detector`"
-            )
-        if device is not None:
-            cfg.device = device
-        if epochs is not None:
-            cfg.mesh.epochs = epochs
-        result = run_pipeline(seq, cfg, out, overwrite=overwrite)
+        s = read_sequence(seq)
+        cfg = opt.resolve_config(s, config, sets, {**opt.detector_shortcuts(detector, weights, detections),
+                                                "device": device, "mesh.epochs": epochs})
+        opt.announce_detector(cfg, s)
+        result = run_pipeline(s, cfg, out, overwrite=overwrite)
         typer.echo(result.summary())
         typer.echo(f"outputs in {out}  (report: {out / 'report.html'})")
 
@@ -60,10 +47,11 @@ def register(app: typer.Typer) -> None:
     def demo(
         out: Path = typer.Option(Path("demo_out"), help="Folder for the synthetic scene and the run."),
         seed: int = typer.Option(0, help="Seed of the synthetic world and the simulated detector."),
-        device: str = typer.Option("auto", help="auto, cpu or cuda."),
+        device: str | None = opt.DEVICE,
+        sets: list[str] | None = opt.SET,
     ) -> None:
         """Synthesise a nuScenes-like drive, run everything, evaluate against the truth."""
-        from pavemap.config import load_config
+        from pavemap.io.sequence import read_sequence
         from pavemap.pipeline import run as run_pipeline
         from pavemap.synth import synthesize
 
@@ -76,12 +64,11 @@ def register(app: typer.Typer) -> None:
 
         sheet = contact_sheet(seq_dir, out / "contact_sheet.png", n_frames=3)
         typer.echo(f"contact sheet of the scene: {sheet}")
-        cfg = load_config("nuscenes")
-        cfg.device = device
-        cfg.detector.seed = seed
-        cfg.mesh.epochs = DEMO_EPOCHS
-        cfg.mesh.render_scale = DEMO_RENDER_SCALE
-        result = run_pipeline(seq_dir, cfg, out / "run", overwrite=True)
+        s = read_sequence(seq_dir)
+        cfg = opt.resolve_config(s, "nuscenes", sets, {"device": device, "detector.seed": seed,
+                                                   "mesh.epochs": DEMO_EPOCHS, "mesh.render_scale": DEMO_RENDER_SCALE})
+        opt.announce_detector(cfg, s)
+        result = run_pipeline(s, cfg, out / "run", overwrite=True)
         took = time.perf_counter() - t0
         typer.echo("")
         typer.echo(f"pavemap demo: {result.summary()}")

@@ -6,12 +6,15 @@ from pathlib import Path
 
 import typer
 
+from pavemap.commands.options import DEVICE_HELP
+
 
 def register(app: typer.Typer) -> None:
     @app.command()
     def synth(
-        out: Path = typer.Option(..., "--out", help="Sequence folder to create."),
-        preset: str = typer.Option("nuscenes-like", help="nuscenes-like (6 cameras, 2 Hz) or kitti-like (1, 10 Hz)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Sequence folder to create."),
+        preset: str = typer.Option("nuscenes-like", help="World and rig: nuscenes-like (6 cameras, 2 Hz) or "
+                                   "kitti-like (1 camera, 10 Hz)."),
         seed: int = typer.Option(0, help="Random seed: same seed, same files."),
         frames: int | None = typer.Option(None, help="Number of frames (default: 40 nuscenes-like, 80 kitti-like)."),
         scale: float | None = typer.Option(None, help="Image scale (default: 0.5 nuscenes-like, 1.0 kitti-like)."),
@@ -19,7 +22,7 @@ def register(app: typer.Typer) -> None:
         defect_density: float | None = typer.Option(None, help="Defects per 100 m of road (default 25)."),
         shadows: bool = typer.Option(True, help="Cast shadows of objects on the ground."),
         overwrite: bool = typer.Option(False, help="Replace OUT if it exists."),
-        device: str = typer.Option("cpu", help="Render device: cpu, cuda or auto."),
+        device: str = typer.Option("cpu", help=f"Render device: {DEVICE_HELP}."),
         threads: int = typer.Option(1, help="torch CPU threads while rendering."),
     ) -> None:
         """Render a synthetic road world (images, semantics, depth, truth) into a sequence folder."""

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from pavemap.commands.options import DEVICE_HELP
+
 
 def register(app: typer.Typer) -> None:
     @app.command("train-detector")
@@ -16,7 +18,7 @@ def register(app: typer.Typer) -> None:
         hours: float | None = typer.Option(None, help="Wall-time budget; ultralytics fits the epochs to it."),
         imgsz: int = typer.Option(640, help="Training image size."),
         batch: int = typer.Option(16, help="Images per batch."),
-        device: str = typer.Option("auto", help="auto, cpu, cuda or cuda:N."),
+        device: str = typer.Option("auto", help=f"{DEVICE_HELP}."),
         workers: int = typer.Option(8, help="Data loader workers."),
         project: Path = typer.Option(Path("runs/detect"), help="Output folder of runs."),
         name: str = typer.Option("train", help="Run name (a subfolder of --project)."),

@@ -1,9 +1,13 @@
-"""Stage 2: detections in (any backend or a user's file) and the semantic road filter."""
+"""Stage 2: detections in (any backend or a user's file), its settings, and the semantic road filter."""
 
-from pavemap.detect.filter import box_ratio, filter_detections, integral_image, sanitize
+from pavemap.detect.config import DetectorConfig, FilterConfig
+from pavemap.detect.filter import FilterResult, box_ratio, filter_detections, integral_image, sanitize
 from pavemap.detect.sources import load_detections, read_yolo_dir, read_yolo_txt
 
 __all__ = [
+    "DetectorConfig",
+    "FilterConfig",
+    "FilterResult",
     "box_ratio",
     "filter_detections",
     "integral_image",

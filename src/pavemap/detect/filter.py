@@ -11,16 +11,15 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections import Counter
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from pavemap.detect.config import FilterConfig
 from pavemap.io.sequence import load_semantics
 from pavemap.types import NUM_DEFECT_CLASSES, Detection, Sequence
-
-if TYPE_CHECKING:
-    from pavemap.fuse.config import FusionConfig
 
 log = logging.getLogger("pavemap")
 
@@ -28,6 +27,29 @@ log = logging.getLogger("pavemap")
 INVALID_REASONS = ("unknown_frame", "unknown_camera", "bad_box", "inverted_box", "outside_image",
                    "unknown_cls", "bad_conf")
 FILTER_REASONS = ("low_conf", "off_road")
+
+
+@dataclass
+class FilterResult:
+    """What stage 2's filter decided.
+
+    ``kept``: the detections that go on to fusion (boxes clipped to the image, input order);
+    ``records``: one dict per *input* detection: ``index``, ``frame``, ``camera``, ``box``, ``cls``,
+    ``conf``, ``kept``, ``reason`` (``kept`` | INVALID_REASONS | ``low_conf`` | ``off_road``) and
+    ``r_road`` (None when not computed); ``mask_used``: the road mask source after fallbacks;
+    ``mask_fallbacks``: counts of views that fell back (``no_mesh``, ``no_semantics``, ``unfiltered_views``).
+    """
+
+    kept: list[Detection]
+    records: list[dict]
+    config: FilterConfig
+    mask_used: str = "frame"
+    mask_fallbacks: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def kept_index(self) -> np.ndarray:
+        """(K,) int64 input index of each kept detection."""
+        return np.array([r["index"] for r in self.records if r["kept"]], dtype=np.int64)
 
 
 def integral_image(mask: np.ndarray) -> np.ndarray:
@@ -133,8 +155,8 @@ def mesh_box_ratio(mesh: object, K: np.ndarray, T_world_cam: np.ndarray, boxes: 
     """
     import torch
 
-    from pavemap.fuse.associate import rays_through
     from pavemap.geometry import intersect_rays
+    from pavemap.geometry.camera import pixel_rays
 
     surface = mesh.surface  # type: ignore[attr-defined]
     dev = surface.heights.device
@@ -149,7 +171,7 @@ def mesh_box_ratio(mesh: object, K: np.ndarray, T_world_cam: np.ndarray, boxes: 
     Tt = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64), device=dev).reshape(-1, 4, 4).expand(n, 4, 4)
     Kt, Tt = Kt.repeat_interleave(per, 0), Tt.repeat_interleave(per, 0)
     with torch.no_grad():
-        o, d = rays_through(Kt, Tt, torch.stack([u, v], 1))
+        o, d = pixel_rays(Kt, Tt, torch.stack([u, v], 1))
         hit = intersect_rays(surface, o, d)
         logits = hit.interpolate(mesh.sem_logits.detach().double())  # type: ignore[attr-defined]
         ids = torch.as_tensor(mesh.class_ids, dtype=torch.long, device=dev)[logits.argmax(1)]  # type: ignore[attr-defined]
@@ -160,7 +182,7 @@ def mesh_box_ratio(mesh: object, K: np.ndarray, T_world_cam: np.ndarray, boxes: 
 class _MaskSource:
     """Road masks per view from the frame semantics and/or the mesh, with fallbacks and warnings."""
 
-    def __init__(self, seq: Sequence, config: FusionConfig, mesh: object | None):
+    def __init__(self, seq: Sequence, config: FilterConfig, mesh: object | None):
         self.seq = seq
         self.mesh = mesh
         self.mode = config.mask
@@ -218,16 +240,15 @@ class _MaskSource:
 
 
 def filter_detections(
-    seq: Sequence, detections: list[Detection], config: FusionConfig, mesh: object | None = None,
-    stats: dict | None = None,
-) -> tuple[list[Detection], list[dict]]:
-    """Sanitise, threshold on confidence and filter by road overlap.
+    seq: Sequence, detections: list[Detection], config: FilterConfig, mesh: object | None = None,
+) -> FilterResult:
+    """Sanitise, threshold on confidence (``config.tau_conf``) and filter by road overlap (``tau_road``).
 
-    Returns the kept detections (boxes clipped to the image, input order) and one record per
-    input detection: ``index``, ``frame``, ``camera``, ``box``, ``cls``, ``conf``, ``kept``,
-    ``reason`` (``kept`` | INVALID_REASONS | ``low_conf`` | ``off_road``) and ``r_road``
-    (None when not computed). ``stats``, when given, receives the mask fallbacks.
+    ``mesh`` (a stage-1 RoadMesh) supplies the ``mesh`` / ``both`` road masks and the fallback of a
+    view without semantics. See :class:`FilterResult` for what comes back.
     """
+    config.validate()
+    t0 = time.perf_counter()
     clean, reasons = sanitize(seq, detections)
     _warn_invalid(detections, reasons)
     r_road = np.full(len(detections), np.nan)
@@ -274,10 +295,7 @@ def filter_detections(
             "kept": reasons[i] == "kept", "reason": reasons[i],
             "r_road": None if not np.isfinite(r_road[i]) else round(float(r_road[i]), 4),
         })
-    if stats is not None:
-        stats["mask_fallbacks"] = dict(masks.fallbacks)
-        stats["mask_used"] = masks.mode
-    return kept, records
+    return FilterResult(kept, records, config, masks.mode, dict(masks.fallbacks), time.perf_counter() - t0)
 
 
 def _finite(v: object) -> bool:

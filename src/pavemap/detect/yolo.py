@@ -28,23 +28,11 @@ log = logging.getLogger(__name__)
 WEIGHT_SUFFIXES = (".pt",)
 
 
-def resolve_device(device: str = "auto") -> str:
-    """pavemap device string → ultralytics' (``cpu``, ``0``, ``1``...). ``auto`` = first GPU if any."""
-    d = (device or "auto").strip().lower()
-    if d == "auto":
-        return "0" if torch.cuda.is_available() else "cpu"
-    if d == "cpu":
-        return "cpu"
-    if d in ("cuda", "gpu"):
-        d = "cuda:0"
-    if d.startswith("cuda:") or d.isdigit():
-        idx = d.split(":")[-1]
-        if not torch.cuda.is_available():
-            raise PavemapError(f"device {device!r} asked for, but this torch sees no CUDA GPU; use --device cpu")
-        if not idx.isdigit() or int(idx) >= torch.cuda.device_count():
-            raise PavemapError(f"device {device!r}: valid GPUs are 0..{torch.cuda.device_count() - 1}")
-        return idx
-    raise PavemapError(f"unknown device {device!r}; use auto, cpu, cuda or cuda:N")
+def ultralytics_device_of(device: str | None = "auto") -> str:
+    """A pavemap ``--device`` in ultralytics' spelling, through the one resolver (:mod:`pavemap.device`)."""
+    from pavemap.device import resolve_device, ultralytics_device
+
+    return ultralytics_device(resolve_device(device))
 
 
 def _import_ultralytics():
@@ -143,7 +131,7 @@ def detect_sequence(
     lut, dropped = build_class_map(model.names, overrides)
     if dropped:
         log.info("YOLO classes not mapped to D00/D10/D20/D40 are dropped: %s", ", ".join(dropped))
-    dev = resolve_device(device)
+    dev = ultralytics_device_of(device)
 
     views = [(f.index, cam, v) for f in seq.frames for cam, v in f.views.items()]
     dets: list[Detection] = []
@@ -271,7 +259,7 @@ def train_detector(
             data=str(data_file),
             epochs=epochs,
             imgsz=imgsz,
-            device=resolve_device(device),
+            device=ultralytics_device_of(device),
             batch=batch,
             project=str(Path(project).resolve()),
             name=name,
@@ -293,4 +281,4 @@ def train_detector(
     return best
 
 
-__all__ = ["DEFECT_CODES", "detect_sequence", "load_detector", "resolve_device", "train_detector"]
+__all__ = ["DEFECT_CODES", "detect_sequence", "load_detector", "train_detector", "ultralytics_device_of"]

@@ -25,11 +25,10 @@ from typing import Any
 
 import numpy as np
 import shapely
-from shapely.geometry import shape
 from shapely.strtree import STRtree
 
-from pavemap.errors import PavemapError
-from pavemap.io.sequence import SequenceError
+from pavemap.errors import PavemapError, SequenceError
+from pavemap.export.geojson import DefectLayer, read_geojson
 from pavemap.types import DEFECT_CODES
 
 MATCH_DIST_M = 0.5
@@ -43,15 +42,35 @@ def load_truth(seq_root: str | os.PathLike) -> list[dict]:
     f = Path(seq_root) / "truth" / "defects.geojson"
     if not f.is_file():
         raise SequenceError(f, "ground truth not found (only synthetic sequences have truth/defects.geojson)")
-    try:
-        fc = json.loads(f.read_text(encoding="utf-8"))
-        out = []
-        for k, feat in enumerate(fc["features"]):
-            p = feat.get("properties") or {}
-            out.append({"id": p.get("id", k), "cls": int(p["cls"]), "polygon": shape(feat["geometry"])})
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as e:
-        raise SequenceError(f, f"not a FeatureCollection of polygons with 'cls' ({e})") from None
+    layer = _read_layer(f)
+    out = []
+    for k, (geom, p) in enumerate(zip(layer.geometries, layer.properties, strict=True)):
+        if geom is None or geom.is_empty:
+            raise SequenceError(f, f"feature {k} has no polygon")
+        out.append({"id": p.get("id", k), "cls": _cls(p, f, k), "polygon": geom})
     return out
+
+
+def _read_layer(path: Path) -> DefectLayer:
+    """A defects GeoJSON (any pavemap writer, local or lon/lat) with its geometries in world metres."""
+    try:
+        layer = read_geojson(path)
+    except PavemapError as e:
+        raise SequenceError(path, str(e).removeprefix(f"{path}: ")) from None
+    if layer.coordinates == "lonlat" and layer.meta.get("geo_origin") is None and len(layer):
+        # lon/lat without the origin it was written with cannot be brought back to this run's metres
+        raise SequenceError(path, "lon/lat coordinates without a pavemap.geo_origin; cannot score in world metres")
+    return layer
+
+
+def _cls(p: dict, path: Path, k: int) -> int:
+    try:
+        c = int(p["cls"])
+    except (KeyError, TypeError, ValueError):
+        raise SequenceError(path, f"feature {k}: needs an integer 'cls' property") from None
+    if not 0 <= c < len(DEFECT_CODES):
+        raise SequenceError(path, f"feature {k}: cls {c} outside 0..{len(DEFECT_CODES) - 1}")
+    return c
 
 
 def match(pred_polys: list, pred_xy: np.ndarray, gt_polys: list, gt_xy: np.ndarray,
@@ -154,21 +173,23 @@ def _read_jsonl(path: Path) -> list[dict]:
 
 
 def _read_instances(path: Path) -> list[dict]:
+    """Predictions of a run folder's defects GeoJSON: cls, polygon and centre in world metres.
+
+    The centre is the ``x_m``, ``y_m`` properties (always local metres, exact to the mm); the
+    polygon comes back from lon/lat through the geo origin the file states.
+    """
     if not path.is_file():
         return []
-    try:
-        fc = json.loads(path.read_text(encoding="utf-8"))
-        out = []
-        for feat in fc["features"]:
-            p = feat["properties"]
-            poly = shape(feat["geometry"])
-            cen = p.get("centroid") or [poly.centroid.x, poly.centroid.y]
-            out.append({"cls": int(p["cls"]), "polygon": poly, "centroid": tuple(cen)})
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise SequenceError(path, f"not a pavemap defects GeoJSON ({e})") from None
-    if out and not str(fc.get("crs_note", "")).startswith("local"):
-        # Another writer's lon/lat export would be scored as metres: refuse instead of scoring nonsense.
-        raise SequenceError(path, "is not in local world metres (written by `pavemap fuse`)")
+    layer = _read_layer(path)
+    out = []
+    for k, (poly, p) in enumerate(zip(layer.geometries, layer.properties, strict=True)):
+        if poly is None or poly.is_empty:
+            continue
+        if p.get("x_m") is not None and p.get("y_m") is not None:
+            cen = (float(p["x_m"]), float(p["y_m"]))
+        else:
+            cen = (poly.centroid.x, poly.centroid.y)
+        out.append({"cls": _cls(p, path, k), "polygon": poly, "centroid": cen})
     return out
 
 
@@ -185,7 +206,7 @@ def _truth_lines(seq_root: Path, run_dir: Path | None, n: int) -> tuple[list[dic
 
 
 def evaluate(result_or_run_dir: Any, seq_root: str | os.PathLike, match_dist_m: float = MATCH_DIST_M) -> dict:
-    """Score a FusionResult or a run folder (written by ``write_fusion``) against ``seq_root``'s truth.
+    """Score a FusionResult or a run folder (``pavemap run`` or ``pavemap fuse``) against ``seq_root``'s truth.
 
     Returns the content of ``eval.json``: precision, recall, f1, median_error_m, p90_error_m,
     msr, fp_removed, tp_lost, per_class, baseline (the single-frame baseline's scores), rule.
@@ -196,7 +217,8 @@ def evaluate(result_or_run_dir: Any, seq_root: str | os.PathLike, match_dist_m: 
     if isinstance(result_or_run_dir, str | os.PathLike):
         run_dir = Path(result_or_run_dir)
         if not (run_dir / "detections_mapped.jsonl").is_file():
-            raise PavemapError(f"{run_dir}: not a fusion run folder (no detections_mapped.jsonl; run `pavemap fuse`)")
+            raise PavemapError(f"{run_dir}: not a run folder (no detections_mapped.jsonl; "
+                               "written by `pavemap run` or `pavemap fuse`)")
         preds = _read_instances(run_dir / "defects.geojson")
         base = _read_instances(run_dir / "baseline_defects.geojson")
         records = _read_jsonl(run_dir / "detections_mapped.jsonl")

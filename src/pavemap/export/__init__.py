@@ -1,6 +1,8 @@
 """Outputs people use: GeoJSON, GeoTIFF, CSV, figures and the self-contained HTML report.
 
-``write_outputs`` writes them all into a run folder; each writer is also usable alone.
+``export`` is the only writer of a run folder's result files: :func:`write_run` (``pavemap run``)
+and :func:`write_fusion_outputs` (``pavemap fuse``) write each file once; ``write_outputs`` writes
+the outputs people use (and is usable alone, as is each writer).
 Every file is written under a temporary name and renamed, so a partial file never looks complete;
 ``report.html`` is written last.
 """
@@ -17,7 +19,9 @@ from tqdm.auto import tqdm
 
 from pavemap.errors import PavemapError, SequenceError
 from pavemap.export.geojson import instances_to_geojson, read_geojson, write_geojson
+from pavemap.export.run_files import write_fusion_outputs, write_run
 from pavemap.export.tables import to_dataframe, write_csv
+from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_path, atomic_write_json
 from pavemap.types import DefectInstance, GeoOrigin, Sequence
 
@@ -36,7 +40,7 @@ def write_png(path: str | os.PathLike, img: np.ndarray) -> Path:
     return Path(path)
 
 
-def _check_bev(name: str, img: np.ndarray | None, mesh_grid: dict | None) -> np.ndarray | None:
+def _check_bev(name: str, img: np.ndarray | None, mesh_grid: GridSpec | None) -> np.ndarray | None:
     if img is None:
         return None
     a = np.asarray(img)
@@ -77,17 +81,77 @@ def _overlay_frames(seq: Sequence, detections: list[dict], k: int) -> list[dict]
     return out
 
 
+def _output_folder(out: Path) -> Path:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "figures").mkdir(exist_ok=True)
+    except OSError as e:
+        raise PavemapError(f"{out}: cannot create the output folder ({e.strerror or e})") from None
+    if not os.access(out, os.W_OK):
+        raise PavemapError(f"{out}: output folder is not writable")
+    return out
+
+
+def _copy_mesh(src: Path, dst: Path) -> Path:
+    """Stage 1's mesh file into the run folder (atomically; nothing to do when it is already there)."""
+    if not src.is_file():
+        raise PavemapError(f"{src}: road mesh not found")
+    if src.resolve() != dst.resolve():
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+    return dst
+
+
+def _sweep_and_frames(extra: dict, seq: Sequence | None, detections: list[dict] | None, output: object | None,
+                      want_figures: bool) -> tuple[list | None, list[dict]]:
+    """The threshold sweep rows and the views to overlay: given in ``figures_extra`` or derived."""
+    from pavemap.export.figures import sweep_from_records
+
+    sweep = extra.get("sweep")
+    if sweep is None and detections and _opt(output, "sweep_tau_conf", None):
+        sweep = sweep_from_records(detections, list(_opt(output, "sweep_tau_conf", ())))
+    frames = extra.get("frames")
+    if frames is None and seq is not None and detections and want_figures:
+        k = int(_opt(output, "overlay_frames", 3) or 0)
+        frames = _overlay_frames(seq, detections, k) if k > 0 else []
+    return sweep, (list(frames or []) if want_figures else [])
+
+
+def _sweep_and_frame_figures(fig_dir: Path, sweep: list | None, frames: list[dict], detections: list[dict],
+                             step) -> dict[str, Path]:  # noqa: ANN001
+    """The threshold sweep and the per-view overlays: {caption: png path}."""
+    from pavemap.export.figures import fig_frame_overlay, fig_threshold_sweep
+
+    figs: dict[str, Path] = {}
+    if sweep:
+        figs["detections against the confidence threshold (Figure 13 style)"] = fig_threshold_sweep(
+            fig_dir / "threshold_sweep.png", list(sweep))
+        step("figures/threshold_sweep.png")
+    for fr in frames:
+        f, cam = int(fr["frame"]), str(fr["camera"])
+        dets = [d for d in detections if int(d["frame"]) == f and str(d["camera"]) == cam
+                and d.get("reason") != "low_conf"]
+        name = f"frame_{f:06d}_{cam}.png"
+        figs[f"frame {f}, {cam}: kept (solid) and filtered (dashed) detections"] = fig_frame_overlay(
+            fig_dir / name, fr["image"], dets, title=f"frame {f} · {cam}")
+        step(f"figures/{name}")
+    return figs
+
+
 def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], prob_map: np.ndarray,
-                  class_maps: np.ndarray, grid: dict, bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
-                  mesh_grid: dict | None, geo_origin: GeoOrigin | None, metrics: dict | None,
+                  class_maps: np.ndarray, grid: GridSpec, bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
+                  mesh_grid: GridSpec | None, geo_origin: GeoOrigin | None, metrics: dict | None,
                   config: dict | None, detections: list[dict] | None, figures_extra: dict | None = None, *,
                   seq: Sequence | None = None, output: object | None = None,
                   mesh_path: str | os.PathLike | None = None, trajectory: np.ndarray | None = None,
-                  title: str | None = None, progress: bool = True) -> dict[str, Path]:
+                  title: str | None = None, progress: bool = True,
+                  written: dict[str, Path] | None = None) -> dict[str, Path]:
     """Write every output of a run into ``out_dir``; returns {name: path}.
 
-    Arrays: ``prob_map`` (H, W) float and ``class_maps`` (4, H, W) float on ``grid``
-    {"x0","y0","res","shape"} (rows go +y); ``bev_rgb``/``bev_semantic`` (ny, nx, 3) uint8 on ``mesh_grid``.
+    Arrays: ``prob_map`` (H, W) float and ``class_maps`` (4, H, W) float on ``grid`` (a
+    :class:`~pavemap.geometry.grid.GridSpec`; rows go +y); ``bev_rgb``/``bev_semantic`` (ny, nx, 3)
+    uint8 on ``mesh_grid``. ``written``: files of the same run another export writer owns
+    (:func:`pavemap.export.run_files.write_run`): listed in the report, never written here.
     ``detections``: records {frame, camera, box, cls, conf, kept, reason, r_road, mapped}.
     ``figures_extra`` (all optional):
       - "sweep": rows [{"tau_conf": .., metric: ..}] -> figures/threshold_sweep.png (Figure 13 style);
@@ -101,23 +165,11 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
     ``trajectory`` (F, 2|3) world metres, drawn on the report map (default: the sequence's).
     """
     # matplotlib and rasterio load here, not at import: `import pavemap` stays fast for the CLI
-    from pavemap.export.figures import (
-        fig_bev_overview,
-        fig_frame_overlay,
-        fig_threshold_sweep,
-        sweep_from_records,
-    )
+    from pavemap.export.figures import fig_bev_overview
     from pavemap.export.geotiff import write_geotiff
     from pavemap.export.report import write_report
 
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "figures").mkdir(exist_ok=True)
-    except OSError as e:
-        raise PavemapError(f"{out}: cannot create the output folder ({e.strerror or e})") from None
-    if not os.access(out, os.W_OK):
-        raise PavemapError(f"{out}: output folder is not writable")
+    out = _output_folder(Path(out_dir))
     bev_rgb = _check_bev("bev_rgb", bev_rgb, mesh_grid)
     bev_semantic = _check_bev("bev_semantic", bev_semantic, mesh_grid)
     extra = dict(figures_extra or {})
@@ -131,14 +183,8 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
         title = f"pavemap defect report — {seq.name}" if seq is not None and seq.name else "pavemap defect report"
     if trajectory is None and seq is not None and seq.frames:
         trajectory = seq.trajectory()
-    sweep = extra.get("sweep")
-    if sweep is None and detections and _opt(output, "sweep_tau_conf", None):
-        sweep = sweep_from_records(detections, list(_opt(output, "sweep_tau_conf", ())))
-    frames = extra.get("frames")
-    if frames is None and seq is not None and detections and want_figures:
-        k = int(_opt(output, "overlay_frames", 3) or 0)
-        frames = _overlay_frames(seq, detections, k) if k > 0 else []
-    frames = list(frames or []) if want_figures else []
+    sweep, frames = _sweep_and_frames(extra, seq, detections, output, want_figures)
+    done = dict(written or {})
     paths: dict[str, Path] = {}
     figs: dict[str, Path] = {}
     steps = 4 + (mesh_path is not None) + want_report + want_figures * (1 + len(frames) + bool(sweep))
@@ -149,7 +195,8 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
         bar.update(1)
 
     try:
-        paths["defects.geojson"] = write_geojson(out / "defects.geojson", instances, geo_origin)
+        if "defects.geojson" not in done:
+            paths["defects.geojson"] = write_geojson(out / "defects.geojson", instances, geo_origin)
         step("defects.geojson")
         paths["defects.csv"] = write_csv(out / "defects.csv", instances, geo_origin)
         step("defects.csv")
@@ -160,18 +207,11 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
             paths["bev_rgb.png"] = write_png(out / "bev_rgb.png", bev_rgb[::-1])
         if bev_semantic is not None:
             paths["bev_semantic.png"] = write_png(out / "bev_semantic.png", bev_semantic[::-1])
-        if metrics is not None:
+        if metrics is not None and "metrics.json" not in done:
             paths["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
         step("bev images")
         if mesh_path is not None:
-            src = Path(mesh_path)
-            dst = out / "road_mesh.ply"
-            if not src.is_file():
-                raise PavemapError(f"{src}: road mesh not found")
-            if src.resolve() != dst.resolve():
-                with atomic_path(dst) as tmp:
-                    shutil.copyfile(src, tmp)
-            paths["road_mesh.ply"] = dst
+            paths["road_mesh.ply"] = _copy_mesh(Path(mesh_path), out / "road_mesh.ply")
             step("road_mesh.ply")
         elif (out / "road_mesh.ply").is_file():
             paths["road_mesh.ply"] = out / "road_mesh.ply"
@@ -180,23 +220,12 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
                 out / "figures" / "bev_overview.png", bev_rgb, bev_semantic, mesh_grid, instances, metrics,
                 prob_map, grid, title=title)
             step("figures/bev_overview.png")
-            if sweep:
-                figs["detections against the confidence threshold (Figure 13 style)"] = fig_threshold_sweep(
-                    out / "figures" / "threshold_sweep.png", list(sweep))
-                step("figures/threshold_sweep.png")
-            for fr in frames:
-                f, cam = int(fr["frame"]), str(fr["camera"])
-                dets = [d for d in (detections or []) if int(d["frame"]) == f and str(d["camera"]) == cam
-                        and d.get("reason") != "low_conf"]
-                name = f"frame_{f:06d}_{cam}.png"
-                figs[f"frame {f}, {cam}: kept (solid) and filtered (dashed) detections"] = fig_frame_overlay(
-                    out / "figures" / name, fr["image"], dets, title=f"frame {f} · {cam}")
-                step(f"figures/{name}")
+            figs.update(_sweep_and_frame_figures(out / "figures", sweep, frames, detections or [], step))
         for caption, p in (extra.get("images") or {}).items():
             figs[str(caption)] = Path(p)
         for k, p in figs.items():
             paths[f"figure:{k}"] = p
-        files = {k: p for k, p in paths.items() if not k.startswith("figure:")}
+        files = {k: p for k, p in {**done, **paths}.items() if not k.startswith("figure:")}
         if want_report:
             paths["report.html"] = write_report(
                 out, instances, bev_rgb=bev_rgb, bev_semantic=bev_semantic, mesh_grid=mesh_grid,
@@ -225,5 +254,5 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["instances_to_geojson", "read_geojson", "to_dataframe", "write_csv", "write_geojson", "write_geotiff",
-           "write_outputs", "write_png", "write_report"]
+__all__ = ["instances_to_geojson", "read_geojson", "to_dataframe", "write_csv", "write_fusion_outputs",
+           "write_geojson", "write_geotiff", "write_outputs", "write_png", "write_report", "write_run"]

@@ -22,6 +22,7 @@ from matplotlib.path import Path as MplPath  # noqa: E402
 
 from pavemap.export.geojson import _polygons  # noqa: E402
 from pavemap.export.geotiff import check_grid  # noqa: E402
+from pavemap.geometry.grid import GridSpec  # noqa: E402
 from pavemap.io.atomic import atomic_path  # noqa: E402
 from pavemap.palette import DEFECT_HEX, colour_labels
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance  # noqa: E402
@@ -46,7 +47,7 @@ def save_figure(fig: plt.Figure, path: str | os.PathLike, dpi: int = 110, tight:
     return Path(path)
 
 
-def grid_extent(grid: dict) -> list[float]:
+def grid_extent(grid: GridSpec) -> list[float]:
     """imshow extent [xmin, xmax, ymin, ymax] (cell edges) of a grid whose rows go +y."""
     x0, y0, res, H, W = check_grid(grid)
     return [x0 - res / 2, x0 + (W - 1) * res + res / 2, y0 - res / 2, y0 + (H - 1) * res + res / 2]
@@ -159,8 +160,8 @@ def key_metric_lines(metrics: dict | None, limit: int = 12) -> list[tuple[str, s
 
 
 def fig_bev_overview(path: str | os.PathLike, bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
-                     mesh_grid: dict | None, instances: list[DefectInstance], metrics: dict | None = None,
-                     prob_map: np.ndarray | None = None, grid: dict | None = None, title: str = "") -> Path:
+                     mesh_grid: GridSpec | None, instances: list[DefectInstance], metrics: dict | None = None,
+                     prob_map: np.ndarray | None = None, grid: GridSpec | None = None, title: str = "") -> Path:
     """The paper's Figure 11: (a) BEV RGB, (b) BEV semantics, (c) defect overlay, (d) statistics.
 
     ``bev_rgb``/``bev_semantic`` (ny, nx, 3) uint8 on ``mesh_grid``; ``prob_map`` (H, W) on ``grid``.

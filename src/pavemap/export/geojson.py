@@ -31,8 +31,28 @@ FORMAT = "pavemap-defects/1"
 # 1e-8 degree is about 1 mm, like 1e-3 m: well below the 0.1 m mesh resolution
 LONLAT_DECIMALS = 8
 METRE_DECIMALS = 3
-PROPERTY_KEYS = ("id", "cls", "code", "name", "severity", "severity_max", "confidence", "observations",
-                 "probability", "area_m2", "length_m", "priority")
+# The one property schema of a defect, in every GeoJSON and CSV pavemap writes (README "Defect schema").
+# (name, type, unit, meaning); the synthetic truth carries the subset it knows (id, cls, code, name,
+# area_m2, length_m, x_m, y_m) plus its own generator fields.
+PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
+    ("id", "int", "", "defect number within the file, from 1 (truth: from 0)"),
+    ("cls", "int", "", "class index 0 D00, 1 D10, 2 D20, 3 D40 (majority vote of its observations)"),
+    ("code", "str", "", "RDD2022 class code: D00, D10, D20 or D40"),
+    ("name", "str", "", "readable class name (longitudinal crack, transverse crack, alligator crack, pothole)"),
+    ("severity", "float", "0-1", "mean EMA severity of the defect's vertices"),
+    ("severity_max", "float", "0-1", "largest vertex severity"),
+    ("confidence", "float", "0-1", "highest detector confidence among its observations"),
+    ("observations", "int", "count", "distinct detections fused into it"),
+    ("probability", "float", "0-1", "peak fused defect probability P of its vertices"),
+    ("area_m2", "float", "m²", "area on the road (defect vertices x cell area)"),
+    ("length_m", "float", "m", "longest extent (principal axis) of the polygon"),
+    ("priority", "str", "", "repair now (P >= 0.7), inspect (>= 0.4) or no action"),
+    ("x_m", "float", "m", "centre x in the local world frame (SPEC §0), exact in every file"),
+    ("y_m", "float", "m", "centre y in the local world frame"),
+    ("lon", "float", "degree", "centre WGS84 longitude (only with a geo origin)"),
+    ("lat", "float", "degree", "centre WGS84 latitude (only with a geo origin)"),
+)
+PROPERTY_KEYS = tuple(name for name, *_ in PROPERTY_SCHEMA[:12])
 
 
 def _num(v: object, nd: int = 4) -> float | None:
@@ -131,20 +151,26 @@ def _bbox(features: list[dict]) -> list[float] | None:
     return [float(a[:, 0].min()), float(a[:, 1].min()), float(a[:, 0].max()), float(a[:, 1].max())]
 
 
-def instances_to_geojson(instances: list[DefectInstance], geo_origin: GeoOrigin | None = None) -> dict:
-    """RFC 7946 FeatureCollection dict of ``instances`` (lon/lat when ``geo_origin`` is given)."""
+def features_to_geojson(geometries: list[object], properties: list[dict], geo_origin: GeoOrigin | None = None,
+                        ids: list[int] | None = None, meta: dict | None = None) -> dict:
+    """The codec: shapely geometries in world metres + property dicts -> an RFC 7946 FeatureCollection.
+
+    With ``geo_origin`` the coordinates are WGS84 lon/lat (RFC 7946 proper); without one they stay
+    local world metres, stated in the ``pavemap`` member (``coordinates: local``). Every GeoJSON the
+    project writes (run defects, baseline, synthetic truth, survey changes) goes through here;
+    ``meta`` adds to (or overrides, e.g. ``format``) the ``pavemap`` member.
+    """
     lt = local_tangent(geo_origin) if geo_origin is not None else None
     nd = LONLAT_DECIMALS if lt is not None else METRE_DECIMALS
     features = []
-    for inst in instances:
-        geom = inst.polygon
+    for k, (geom, props) in enumerate(zip(geometries, properties, strict=True)):
         if lt is not None and geom is not None and not geom.is_empty:
             geom = lt.geometry_to_lonlat(geom)
         features.append({
             "type": "Feature",
-            "id": int(inst.id),
+            "id": int(ids[k]) if ids is not None else int(props.get("id", k)),
             "geometry": geometry_to_geojson(geom, nd),
-            "properties": instance_properties(inst, geo_origin),
+            "properties": props,
         })
     fc: dict = {"type": "FeatureCollection"}
     bbox = _bbox(features)
@@ -159,9 +185,16 @@ def instances_to_geojson(instances: list[DefectInstance], geo_origin: GeoOrigin 
         "geo_origin": origin_to_dict(geo_origin),
         "count": len(features),
         "codes": {c: DEFECT_NAMES[c] for c in DEFECT_CODES},
+        **(meta or {}),
     }
     fc["features"] = features
     return fc
+
+
+def instances_to_geojson(instances: list[DefectInstance], geo_origin: GeoOrigin | None = None) -> dict:
+    """RFC 7946 FeatureCollection dict of ``instances`` (lon/lat when ``geo_origin`` is given)."""
+    return features_to_geojson([inst.polygon for inst in instances],
+                               [instance_properties(inst, geo_origin) for inst in instances], geo_origin)
 
 
 def write_geojson(path: str | os.PathLike, instances: list[DefectInstance],
@@ -246,5 +279,5 @@ def read_geojson(path: str | os.PathLike) -> DefectLayer:
     return DefectLayer(p, geoms, props, origin, mode, dict(meta))
 
 
-__all__ = ["FORMAT", "PROPERTY_KEYS", "DefectLayer", "geometry_to_geojson", "instance_properties",
-           "instances_to_geojson", "read_geojson", "write_geojson"]
+__all__ = ["FORMAT", "PROPERTY_KEYS", "PROPERTY_SCHEMA", "DefectLayer", "features_to_geojson", "geometry_to_geojson",
+           "instance_properties", "instances_to_geojson", "read_geojson", "write_geojson"]

@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -28,6 +30,7 @@ from scipy import ndimage
 
 from pavemap.errors import PavemapError
 from pavemap.export.geo import local_tangent, origin_to_dict
+from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_path
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, GeoOrigin
 
@@ -35,24 +38,27 @@ BAND_DESCRIPTIONS = ("total defect probability",
                      *(f"{c} {DEFECT_NAMES[c]} probability" for c in DEFECT_CODES))
 
 
-def check_grid(grid: dict, shape: tuple[int, ...] | None = None, what: str = "grid") -> tuple[float, float, float,
-                                                                                                int, int]:
-    """Validate a grid dict ``{"x0", "y0", "res", "shape": [H, W]}``; returns (x0, y0, res, H, W)."""
+def as_grid(grid: GridSpec | Mapping[str, Any], what: str = "grid") -> GridSpec:
+    """A GridSpec, or a grid read back from a file (``GridSpec.from_dict``); PavemapError naming ``what``."""
+    if isinstance(grid, GridSpec):
+        return grid
     try:
-        x0, y0, res = float(grid["x0"]), float(grid["y0"]), float(grid["res"])
-        H, W = (int(v) for v in grid["shape"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise PavemapError(f"{what}: needs x0, y0, res and shape [H, W] ({e})") from None
-    if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(res) and res > 0):
-        raise PavemapError(f"{what}: x0, y0 must be finite and res > 0, got {x0}, {y0}, {res}")
-    if H < 1 or W < 1:
-        raise PavemapError(f"{what}: shape must be positive, got {[H, W]}")
+        return GridSpec.from_dict(dict(grid))
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise PavemapError(f"{what}: needs x0, y0, res > 0 and nx, ny >= 1 (or shape [H, W]) ({e})") from None
+
+
+def check_grid(grid: GridSpec | Mapping[str, Any], shape: tuple[int, ...] | None = None,
+               what: str = "grid") -> tuple[float, float, float, int, int]:
+    """Validate a grid (and an array shape on it); returns (x0, y0, res, H, W)."""
+    g = as_grid(grid, what)
+    x0, y0, res, (H, W) = g.x0, g.y0, g.res, g.shape
     if shape is not None and tuple(shape[-2:]) != (H, W):
         raise PavemapError(f"{what}: array shape {tuple(shape)} does not match grid shape {[H, W]}")
     return x0, y0, res, H, W
 
 
-def stack_bands(prob_map: np.ndarray, class_maps: np.ndarray, grid: dict) -> np.ndarray:
+def stack_bands(prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec) -> np.ndarray:
     """(5, H, W) float32: total then per class, rows going +y (the BEV convention)."""
     prob_map = np.asarray(prob_map, dtype=np.float32)
     class_maps = np.asarray(class_maps, dtype=np.float32)
@@ -67,7 +73,7 @@ def stack_bands(prob_map: np.ndarray, class_maps: np.ndarray, grid: dict) -> np.
     return np.nan_to_num(bands, nan=0.0, posinf=1.0, neginf=0.0)
 
 
-def north_up(bands: np.ndarray, grid: dict, geo_origin: GeoOrigin | None = None) -> tuple[np.ndarray, Affine]:
+def north_up(bands: np.ndarray, grid: GridSpec, geo_origin: GeoOrigin | None = None) -> tuple[np.ndarray, Affine]:
     """Rasterise BEV bands north-up.
 
     ``bands`` (B, H, W) rows going +y. Returns (B, H', W') with row 0 at the top and the affine
@@ -97,11 +103,11 @@ def north_up(bands: np.ndarray, grid: dict, geo_origin: GeoOrigin | None = None)
     return out, Affine(res, 0.0, e0 - res / 2, 0.0, -res, n_top + res / 2)
 
 
-def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.ndarray, grid: dict,
+def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec,
                   geo_origin: GeoOrigin | None = None) -> Path:
     """Write ``defect_map.tif`` (COG when GDAL has the driver, else tiled GTiff with overviews).
 
-    ``prob_map`` (H, W) float, ``class_maps`` (4, H, W) float, ``grid`` {"x0","y0","res","shape"}.
+    ``prob_map`` (H, W) float, ``class_maps`` (4, H, W) float, ``grid`` a GridSpec.
     """
     bands = stack_bands(prob_map, class_maps, grid)
     data, transform = north_up(bands, grid, geo_origin)

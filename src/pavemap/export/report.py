@@ -25,6 +25,7 @@ from pavemap.export.figures import CLASS_COLOURS, flatten_metrics, format_value,
 from pavemap.export.geojson import _polygons, instance_properties
 from pavemap.export.report_assets import CSS, JS
 from pavemap.export.tables import PRIORITY_RANK
+from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_write_text
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance, GeoOrigin
 
@@ -81,7 +82,7 @@ def _svg_path(geom: object) -> str:
     return "".join(parts)
 
 
-def _image_el(el_id: str, uri: str, grid: dict, hidden: bool = False) -> str:
+def _image_el(el_id: str, uri: str, grid: GridSpec, hidden: bool = False) -> str:
     x0, x1, y0, y1 = grid_extent(grid)
     cls = ' class="hidden"' if hidden else ""
     return (f'<image id="{el_id}"{cls} href="{uri}" x="{x0:.4f}" y="{-y1:.4f}" width="{x1 - x0:.4f}" '
@@ -150,8 +151,8 @@ def _table_rows(props: list[dict], geo: bool) -> tuple[str, str]:
 
 
 def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | None = None,
-                      bev_semantic: np.ndarray | None = None, mesh_grid: dict | None = None,
-                      prob_map: np.ndarray | None = None, grid: dict | None = None,
+                      bev_semantic: np.ndarray | None = None, mesh_grid: GridSpec | None = None,
+                      prob_map: np.ndarray | None = None, grid: GridSpec | None = None,
                       geo_origin: GeoOrigin | None = None, metrics: dict | None = None,
                       config: dict | None = None, detections: list[dict] | None = None,
                       figures: dict[str, Path] | None = None, files: dict[str, Path] | None = None,

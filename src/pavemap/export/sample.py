@@ -12,6 +12,7 @@ import numpy as np
 from shapely import affinity
 from shapely.geometry import Point, Polygon, box
 
+from pavemap.geometry.grid import GridSpec
 from pavemap.types import DEFECT_CODES, DefectInstance, GeoOrigin
 
 W_SEV = (0.3, 0.4, 0.7, 1.0)
@@ -54,10 +55,8 @@ def sample_inputs(n: int = 12, seed: int = 0, geo: bool = False, heading_deg: fl
     else:
         x0, y0, height_m = -5.0, -width_m / 2, width_m
     nx, ny = int(round(length_m / res)) + 1, int(round(height_m / res)) + 1
-    grid = {"x0": x0, "y0": y0, "res": res, "shape": [ny, nx]}
-    xs = x0 + np.arange(nx) * res
-    ys = y0 + np.arange(ny) * res
-    X, Y = np.meshgrid(xs, ys)  # (ny, nx)
+    grid = GridSpec(x0, y0, res, nx, ny)
+    X, Y = grid.centres()  # (ny, nx)
 
     # road BEV: asphalt texture, lane markings, verges outside the carriageway
     half = 5.5 if layout == "crossing" else width_m / 2 - 1.5
@@ -160,7 +159,7 @@ def sample_inputs(n: int = 12, seed: int = 0, geo: bool = False, heading_deg: fl
     else:
         traj = np.column_stack([np.linspace(0, length_m - 8, 20), np.full(20, -1.8)])
     return {"instances": instances, "prob_map": prob, "class_maps": per_class, "grid": grid, "bev_rgb": bev_rgb,
-            "bev_semantic": bev_sem, "mesh_grid": dict(grid), "geo_origin": origin, "metrics": metrics,
+            "bev_semantic": bev_sem, "mesh_grid": grid, "geo_origin": origin, "metrics": metrics,
             "config": config, "detections": detections, "trajectory": traj}
 
 

@@ -18,11 +18,15 @@ vertex from the ray; ``hit`` / ``footprint``: hit point to nearest associated ve
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from pavemap.fuse.config import FusionConfig
+from pavemap.geometry.camera import pixel_rays
+from pavemap.types import Detection, Sequence
 
 CHUNK = 2048  # detections per batch: bounds the candidate tensors to a few million entries
 
@@ -39,15 +43,38 @@ class Association:
     hit: torch.Tensor
 
 
-def rays_through(K: torch.Tensor, T: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched ``pixel_rays``: K (N,3,3), T (N,4,4), uv (N,2) -> origins (N,3), dirs (N,3), d = R K^-1 [u,v,1]."""
-    # Closed-form inverse of the upper-triangular pinhole K (a batched solve is ~50x slower).
-    fx, fy, cx, cy, sk = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 0, 1]
-    yc = (uv[:, 1] - cy) / fy
-    xc = (uv[:, 0] - cx - sk * yc) / fx
-    d_cam = torch.stack([xc, yc, torch.ones_like(xc)], 1)
-    dirs = (T[:, :3, :3] @ d_cam.unsqueeze(-1)).squeeze(-1)
-    return T[:, :3, 3].clone(), dirs
+@dataclass
+class DetectionBatch:
+    """N detections as tensors on one device: boxes (N, 4) float64 ``x1 y1 x2 y2`` pixels, K (N, 3, 3)
+    float64 and T (N, 4, 4) float64 camera-to-world of each detection's view, conf (N,) float64."""
+
+    boxes: torch.Tensor
+    K: torch.Tensor
+    T: torch.Tensor
+    conf: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.boxes.shape[0])
+
+    def centres(self) -> torch.Tensor:
+        """(N, 2) float64 box centres ``(u, v)``."""
+        b = self.boxes
+        return torch.stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2], 1)
+
+    def centre_rays(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays through the box centres: origins (N, 3), directions (N, 3) float64."""
+        return pixel_rays(self.K, self.T, self.centres())
+
+
+def detection_batch(seq: Sequence, dets: list[Detection], device: torch.device) -> DetectionBatch:
+    """The tensors of ``dets`` (boxes, their views' K and camera-to-world poses, confidences)."""
+    n = len(dets)
+    frames = seq.frame_by_index()
+    K = np.array([seq.cameras[d.camera].K for d in dets], dtype=np.float64).reshape(n, 3, 3)
+    T = np.array([frames[d.frame].views[d.camera].T_world_cam for d in dets], dtype=np.float64).reshape(n, 4, 4)
+    boxes = np.array([d.box for d in dets], dtype=np.float64).reshape(n, 4)
+    conf = np.array([d.conf for d in dets], dtype=np.float64).reshape(n)
+    return DetectionBatch(*(torch.as_tensor(a, device=device) for a in (boxes, K, T, conf)))
 
 
 def window_pairs(i0: torch.Tensor, j0: torch.Tensor, i1: torch.Tensor, j1: torch.Tensor
@@ -92,9 +119,10 @@ def _unique_pairs(det: torch.Tensor, vid: torch.Tensor, nv: int) -> tuple[torch.
     return torch.div(key, nv, rounding_mode="floor"), key % nv
 
 
-def associate_ray(hf, o: torch.Tensor, d: torch.Tensor, conf: torch.Tensor, cfg: FusionConfig  # noqa: ANN001
-                  ) -> Association:
-    """Paper mode: vertices within d_thresh of the ray (3D point-to-ray distance, lam* >= 0)."""
+def associate_ray(hf, dets: DetectionBatch, cfg: FusionConfig) -> Association:  # noqa: ANN001
+    """Paper mode: vertices within d_thresh of the box-centre ray (3D point-to-ray distance, lam* >= 0)."""
+    o, d = dets.centre_rays()
+    conf = dets.conf
     n = o.shape[0]
     dev = o.device
     nv = hf.nx * hf.ny
@@ -178,7 +206,7 @@ def footprint_centres(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tensor,
     uv = torch.stack([torch.stack([x1, y1], 1), torch.stack([x2, y1], 1), torch.stack([x2, y2], 1),
                       torch.stack([x1, y2], 1)], 1)  # (N, 4, 2) in ring order
     n = boxes.shape[0]
-    o, d = rays_through(K.repeat_interleave(4, 0), T.repeat_interleave(4, 0), uv.reshape(-1, 2))
+    o, d = pixel_rays(K.repeat_interleave(4, 0), T.repeat_interleave(4, 0), uv.reshape(-1, 2))
     o, d = o.reshape(n, 4, 3), d.reshape(n, 4, 3)
     lam = (pts[:, None, 2] - o[..., 2]) / d[..., 2].clamp(max=-1e-12)
     ok = hit & (d[..., 2] < -1e-12).all(1) & (lam > 0).all(1)
@@ -199,18 +227,17 @@ def footprint_centres(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tensor,
     return out
 
 
-def associate_hit(hf, o: torch.Tensor, d: torch.Tensor, cfg: FusionConfig,  # noqa: ANN001
-                  boxes: torch.Tensor | None = None, K: torch.Tensor | None = None,
-                  T: torch.Tensor | None = None) -> Association:
+def associate_hit(hf, dets: DetectionBatch, cfg: FusionConfig) -> Association:  # noqa: ANN001
     """Vertices within ``hit_radius_m`` (horizontal) of the detection's surface point.
 
-    The point is the centre ray's hit, or with ``cfg.hit_point == "footprint"`` (and boxes, K, T
-    given) the centroid of the box's ground footprint (:func:`footprint_centres`).
+    The point is the centre ray's hit, or with ``cfg.hit_point == "footprint"`` the centroid of
+    the box's ground footprint (:func:`footprint_centres`).
     """
+    o, d = dets.centre_rays()
     n = o.shape[0]
     pts, hit = _hits(hf, o, d, cfg)
-    if cfg.hit_point == "footprint" and boxes is not None and K is not None and T is not None:
-        pts = footprint_centres(hf, boxes, K, T, pts, hit)
+    if cfg.hit_point == "footprint":
+        pts = footprint_centres(hf, dets.boxes, dets.K, dets.T, pts, hit)
     radius = max(cfg.hit_radius_m, 0.75 * hf.res)  # never smaller than the cell: a hit always maps
     reach = int(radius / hf.res) + 1
     idx = torch.nonzero(hit).squeeze(1)
@@ -230,33 +257,24 @@ def associate_hit(hf, o: torch.Tensor, d: torch.Tensor, cfg: FusionConfig,  # no
     return Association(det, vid, mapped, dist, hits)
 
 
-def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tensor,  # noqa: ANN001
-                        cfg: FusionConfig) -> Association:
-    """Vertices whose projection falls inside the box: the box's footprint on the surface.
+def _footprint_windows(hf, dets: DetectionBatch, cfg: FusionConfig, cp: torch.Tensor,  # noqa: ANN001
+                       ch: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Candidate vertex rectangles of the boxes whose centre ray hit (``cp`` (N, 3) hits, ``ch`` (N,) bool).
 
-    boxes (N, 4) float64, K (N, 3, 3), T (N, 4, 4). The centre ray is intersected with the
-    surface; the box's ``footprint_grid`` x ``footprint_grid`` edge-inclusive ray grid is then
-    intersected with the local plane ``z = z_hit`` (analytic, so no extra surface casts: casting
-    64 rays per box was 20x slower for the same candidates) to bound the candidate rectangle,
-    padded by 2 cells. Membership itself is exact: a valid vertex is associated when it
-    projects inside the box with positive depth. A box too small to contain a vertex maps to
-    the vertex nearest its centre hit. ``cfg.footprint_max_m`` caps the rectangle's side: a far box
-    one pixel tall covers metres of road at grazing angles, more than any defect.
+    Returns idx (M,) the detections with a hit and their inclusive windows i0, j0, i1, j1 (M,) long.
     """
+    boxes, K, T = dets.boxes, dets.K, dets.T
     n = boxes.shape[0]
-    dev = boxes.device
     max_cells = max(2, int(round(cfg.footprint_max_m / hf.res)))
     G = max(2, cfg.footprint_grid)
-    g = torch.linspace(0.0, 1.0, G, device=dev, dtype=torch.float64)
+    g = torch.linspace(0.0, 1.0, G, device=boxes.device, dtype=torch.float64)
     gu, gv = torch.meshgrid(g, g, indexing="xy")
     fu, fv = gu.reshape(-1), gv.reshape(-1)
     x1, y1, x2, y2 = boxes.unbind(1)
-    oc, dc = rays_through(K, T, torch.stack([(x1 + x2) / 2, (y1 + y2) / 2], 1))
-    cp, ch = _hits(hf, oc, dc, cfg)
     u = x1[:, None] + fu[None] * (x2 - x1)[:, None]
     v = y1[:, None] + fv[None] * (y2 - y1)[:, None]
-    o, d = rays_through(K.repeat_interleave(G * G, 0), T.repeat_interleave(G * G, 0),
-                        torch.stack([u.reshape(-1), v.reshape(-1)], 1))
+    o, d = pixel_rays(K.repeat_interleave(G * G, 0), T.repeat_interleave(G * G, 0),
+                      torch.stack([u.reshape(-1), v.reshape(-1)], 1))
     o, d = o.reshape(n, G * G, 3), d.reshape(n, G * G, 3)
     # Grid rays on the plane z = z_hit; rays that never reach it (above the horizon) stop at the cap.
     cap = max_cells * hf.res / d[..., :2].norm(dim=-1).clamp(min=1e-9)
@@ -267,22 +285,40 @@ def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tenso
     xmax = torch.maximum(gp[..., 0].amax(1), cp[:, 0])
     ymin = torch.minimum(gp[..., 1].amin(1), cp[:, 1])
     ymax = torch.maximum(gp[..., 1].amax(1), cp[:, 1])
-    anyhit = ch
     idx = torch.nonzero(ch).squeeze(1)
-    ref = cp
     i0 = torch.floor((xmin[idx] - hf.x0) / hf.res).long() - 2
     i1 = torch.ceil((xmax[idx] - hf.x0) / hf.res).long() + 2
     j0 = torch.floor((ymin[idx] - hf.y0) / hf.res).long() - 2
     j1 = torch.ceil((ymax[idx] - hf.y0) / hf.res).long() + 2
-    ri, rj = _grid_index(hf, ref[idx, :2])
+    ri, rj = _grid_index(hf, cp[idx, :2])
     half = max_cells // 2
     i0, i1 = torch.maximum(i0, ri - half), torch.minimum(i1, ri + half)
     j0, j1 = torch.maximum(j0, rj - half), torch.minimum(j1, rj + half)
-    i0, j0, i1, j1 = _clip_window(hf, i0, j0, i1, j1)
+    return (idx, *_clip_window(hf, i0, j0, i1, j1))
+
+
+def associate_footprint(hf, dets: DetectionBatch, cfg: FusionConfig) -> Association:  # noqa: ANN001
+    """Vertices whose projection falls inside the box: the box's footprint on the surface.
+
+    The centre ray is intersected with the surface; the box's ``footprint_grid`` x ``footprint_grid``
+    edge-inclusive ray grid is then intersected with the local plane ``z = z_hit`` (analytic, so no
+    extra surface casts: casting 64 rays per box was 20x slower for the same candidates) to bound the
+    candidate rectangle,
+    padded by 2 cells. Membership itself is exact: a valid vertex is associated when it
+    projects inside the box with positive depth. A box too small to contain a vertex maps to
+    the vertex nearest its centre hit. ``cfg.footprint_max_m`` caps the rectangle's side: a far box
+    one pixel tall covers metres of road at grazing angles, more than any defect.
+    """
+    boxes, K, T = dets.boxes, dets.K, dets.T
+    n = boxes.shape[0]
+    dev = boxes.device
+    cp, ch = _hits(hf, *dets.centre_rays(), cfg)
+    idx, i0, j0, i1, j1 = _footprint_windows(hf, dets, cfg, cp, ch)
+    ref = cp
     # Projection matrices P = K [R^T | -R^T t], so a candidate's projection is one small gather.
     Rt = T[:, :3, :3].transpose(1, 2)
     Pm = K @ torch.cat([Rt, -(Rt @ T[:, :3, 3:])], 2)
-    dets, vids = [], []
+    pair_dets, vids = [], []
     dmin = torch.full((n,), float("inf"), dtype=torch.float64, device=dev)
     near_d = torch.full((n,), float("inf"), dtype=torch.float64, device=dev)
     near_v = torch.full((n,), -1, dtype=torch.long, device=dev)
@@ -311,13 +347,13 @@ def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tenso
         cand_v = torch.full((n,), -1, dtype=torch.long, device=dev).scatter_reduce(
             0, det[is_min], vid[is_min], reduce="amax", include_self=True)
         near_v = torch.where(better, cand_v, near_v)
-        dets.append(det[inside])
+        pair_dets.append(det[inside])
         vids.append(vid[inside])
         dmin = torch.minimum(dmin, _min_per(det[inside], dxy[inside], n))
-    det = torch.cat(dets) if dets else torch.zeros(0, dtype=torch.long, device=dev)
+    det = torch.cat(pair_dets) if pair_dets else torch.zeros(0, dtype=torch.long, device=dev)
     vid = torch.cat(vids) if vids else torch.zeros(0, dtype=torch.long, device=dev)
     # Boxes with hits but no vertex inside: the nearest valid vertex within one cell of the reference.
-    lone = anyhit & ~torch.isfinite(dmin) & (near_v >= 0) & (near_d <= hf.res)
+    lone = ch & ~torch.isfinite(dmin) & (near_v >= 0) & (near_d <= hf.res)
     det = torch.cat([det, torch.nonzero(lone).squeeze(1)])
     vid = torch.cat([vid, near_v[lone]])
     dmin = torch.where(lone, near_d, dmin)
@@ -326,3 +362,17 @@ def associate_footprint(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tenso
     centres = footprint_centres(hf, boxes, K, T, cp, ch)
     hits = torch.where(ch[:, None], centres, torch.full_like(cp, float("nan")))
     return Association(det, vid, mapped, dist, hits)
+
+
+# The association modes: one signature, ``(surface, detections, config) -> Association``.
+ASSOCIATIONS: dict[str, Callable[..., Association]] = {
+    "ray": associate_ray,
+    "hit": associate_hit,
+    "footprint": associate_footprint,
+}
+
+
+def associate_detections(seq: Sequence, dets: list[Detection], surface, config: FusionConfig  # noqa: ANN001
+                         ) -> Association:
+    """Run ``config.association`` for (already filtered) detections on ``surface`` (a HeightField)."""
+    return ASSOCIATIONS[config.association](surface, detection_batch(seq, dets, surface.heights.device), config)

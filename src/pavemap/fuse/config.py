@@ -1,30 +1,36 @@
-"""Fusion settings (SPEC §2-§3): thresholds, association mode, accumulator and map parameters."""
+"""Fusion settings (SPEC §3): association mode, accumulator, instance and map parameters.
+
+The road filter's thresholds (``tau_conf``, ``tau_road``, the mask source) are stage 2's:
+:class:`pavemap.detect.config.FilterConfig`.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Literal
 
 from pavemap.errors import PavemapError
 
-ASSOCIATIONS = ("ray", "hit", "footprint")
-MASKS = ("frame", "mesh", "both")
-PROBS = ("tanh", "sigmoid")
+AssociationMode = Literal["ray", "hit", "footprint"]
+HitPoint = Literal["centre", "footprint"]
+ProbForm = Literal["tanh", "sigmoid"]
+CentroidMode = Literal["detections", "vertices"]
+ASSOCIATION_MODES: tuple[str, ...] = ("ray", "hit", "footprint")
+PROBS: tuple[str, ...] = ("tanh", "sigmoid")
 
 
 @dataclass
 class FusionConfig:
-    """Every knob of stages 2-3. Defaults are the benchmark's choice (see bench/results/fusion.json).
+    """Every knob of stage 3. Defaults are the benchmark's choice (see bench/results/fusion.json).
 
-    - ``tau_conf``: keep detections with ``conf >= tau_conf`` (paper 0.05 nuScenes / 0.10 KITTI).
-    - ``tau_road``: keep detections whose box road share ``R_road > tau_road`` (paper 0.5).
-    - ``mask``: road mask source for ``R_road``: ``frame`` (the view's semantic PNG), ``mesh``
-      (road rendered from the mesh), ``both`` (both ratios must pass).
     - ``association``: ``ray`` (paper point-to-ray distance, ``d = beta0*r + beta1*(1-conf)``),
       ``hit`` (vertices within ``hit_radius_m`` of the detection's surface point: the centre ray's
       hit, or by default, ``hit_point="footprint"``, the centroid of the box's ground footprint,
       which removes the centre ray's bias toward the camera), ``footprint``
       (vertices whose projection lies inside the box; candidates from a ``footprint_grid``² grid of
       rays over the box, the rectangle capped at ``footprint_max_m``).
+      The modes are the table :data:`pavemap.fuse.associate.ASSOCIATIONS`.
     - ``alpha``: EMA weight of a new observation in the severity (paper 0.3).
     - ``prob``: ``tanh`` = 2σ(x)-1 (SPEC erratum, 0 when unobserved) or ``sigmoid`` (paper).
     - ``n_min``: a vertex is a defect vertex when observed at least this often.
@@ -34,70 +40,66 @@ class FusionConfig:
       long crack land as separate blobs on an imperfect surface).
     - ``centroid``: instance centre = inverse-variance weighted mean of its detections' surface
       points (``detections``; weight 1/(road metres per pixel)^2) or the vertex mean (``vertices``).
+    - ``severity_weights``: severity of D00, D10, D20, D40 in the EMA.
+    - ``device``: ``auto`` = the surface's device, else a name for :func:`pavemap.device.resolve_device`.
     """
 
-    tau_conf: float = 0.05
-    tau_road: float = 0.5
-    mask: str = "frame"
-    association: str = "hit"
+    association: AssociationMode = "hit"
     alpha: float = 0.3
     beta0: float = 2.5
     beta1: float = 0.0
     hit_radius_m: float = 0.3
-    hit_point: str = "footprint"  # hit mode: "centre" ray hit or the box "footprint" centroid
+    hit_point: HitPoint = "footprint"
     footprint_grid: int = 4
     footprint_max_m: float = 6.0
     max_dist_m: float = 200.0
-    prob: str = "tanh"
-    centroid: str = "detections"  # instance centre: mean of its detections' surface points, or "vertices"
+    prob: ProbForm = "tanh"
+    centroid: CentroidMode = "detections"
     n_min: int = 2
     min_instance_obs: int = 2
-    merge_gap_m: float = 0.4  # defect-vertex pieces closer than this form one instance
+    merge_gap_m: float = 0.4
     splat_res: float = 0.1
     splat_sigma: float = 0.15
     severity_weights: tuple[float, ...] = (0.3, 0.4, 0.7, 1.0)
-    mesh_mask_scale: float = 0.25  # render scale when the mesh mask comes from render_view
-    mesh_mask_grid: int = 8  # rays per box side when the mesh mask is sampled from the mesh surface
-    device: str = "auto"  # auto = the surface's device
+    device: str = "auto"
 
     def __post_init__(self) -> None:
+        self.severity_weights = tuple(float(w) for w in self.severity_weights)
         self.validate()
 
     def validate(self) -> None:
         """Raise PavemapError naming the first bad field."""
-        if self.association not in ASSOCIATIONS:
-            raise PavemapError(f"fusion.association must be one of {', '.join(ASSOCIATIONS)}, got {self.association!r}")
-        if self.mask not in MASKS:
-            raise PavemapError(f"fusion.mask must be one of {', '.join(MASKS)}, got {self.mask!r}")
-        if self.hit_point not in ("centre", "footprint"):
-            raise PavemapError(f"fusion.hit_point must be centre or footprint, got {self.hit_point!r}")
-        if self.centroid not in ("detections", "vertices"):
-            raise PavemapError(f"fusion.centroid must be detections or vertices, got {self.centroid!r}")
-        if self.prob not in PROBS:
-            raise PavemapError(f"fusion.prob must be tanh or sigmoid, got {self.prob!r}")
+        for name, value, allowed in (("association", self.association, ASSOCIATION_MODES),
+                                     ("hit_point", self.hit_point, ("centre", "footprint")),
+                                     ("centroid", self.centroid, ("detections", "vertices")),
+                                     ("prob", self.prob, PROBS)):
+            if value not in allowed:
+                raise PavemapError(f"fusion.{name} must be one of {', '.join(allowed)}, got {value!r}")
         if not 0.0 < self.alpha <= 1.0:
             raise PavemapError(f"fusion.alpha must be in (0, 1], got {self.alpha}")
-        if not 0.0 <= self.tau_road < 1.0:
-            raise PavemapError(f"fusion.tau_road must be in [0, 1), got {self.tau_road}")
-        if not 0.0 <= self.tau_conf <= 1.0:
-            raise PavemapError(f"fusion.tau_conf must be in [0, 1], got {self.tau_conf}")
-        if len(self.severity_weights) != 4:
-            raise PavemapError(f"fusion.severity_weights needs 4 values (D00 D10 D20 D40), got {self.severity_weights}")
-        for name in ("hit_radius_m", "splat_res", "max_dist_m", "mesh_mask_scale", "footprint_max_m"):
-            if not getattr(self, name) > 0:
-                raise PavemapError(f"fusion.{name} must be positive, got {getattr(self, name)}")
-        if self.merge_gap_m < 0:
-            raise PavemapError(f"fusion.merge_gap_m must be >= 0, got {self.merge_gap_m}")
-        if self.splat_sigma < 0 or self.beta0 < 0 or self.beta1 < 0:
-            raise PavemapError("fusion.splat_sigma, beta0 and beta1 must be >= 0")
-        if self.n_min < 1 or self.footprint_grid < 1 or self.min_instance_obs < 1 or self.mesh_mask_grid < 1:
-            raise PavemapError("fusion.n_min, footprint_grid and min_instance_obs must be >= 1")
+        if len(self.severity_weights) != 4 or not all(0.0 <= w <= 1.0 for w in self.severity_weights):
+            raise PavemapError(f"fusion.severity_weights needs 4 values in [0, 1] (D00 D10 D20 D40), "
+                               f"got {self.severity_weights}")
+        for name in ("hit_radius_m", "splat_res", "max_dist_m", "footprint_max_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise PavemapError(f"fusion.{name} must be positive, got {v}")
+        for name in ("merge_gap_m", "splat_sigma", "beta0", "beta1"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise PavemapError(f"fusion.{name} must be >= 0, got {v}")
+        for name in ("n_min", "footprint_grid", "min_instance_obs"):
+            if getattr(self, name) < 1:
+                raise PavemapError(f"fusion.{name} must be >= 1, got {getattr(self, name)}")
+        if not self.device:
+            raise PavemapError("fusion.device must be auto or a device name (cpu, cuda, cuda:N)")
 
     @classmethod
     def preset(cls, name: str) -> FusionConfig:
-        """Paper Table 2 thresholds: nuscenes τ_conf 0.05, kitti τ_conf 0.10 (τ_road 0.5, α 0.3, β0 2.5)."""
-        if name == "nuscenes":
-            return cls(tau_conf=0.05)
-        if name == "kitti":
-            return cls(tau_conf=0.10)
-        raise PavemapError(f"unknown fusion preset {name!r}; choose nuscenes or kitti")
+        """Paper Table 2 fusion parameters (α 0.3, β0 2.5) for ``nuscenes`` and ``kitti``.
+
+        The two presets differ only in the filter's τ_conf (:meth:`FilterConfig.preset`).
+        """
+        if name not in ("nuscenes", "kitti"):
+            raise PavemapError(f"unknown fusion preset {name!r}; choose nuscenes or kitti")
+        return cls()

@@ -1,132 +1,110 @@
-"""Stage 3 driver: filter -> associate -> accumulate -> probability -> instances and BEV maps.
+"""Stage 3 driver: associate -> accumulate -> probability -> instances and BEV maps.
 
-``fuse`` is a pure function of the sequence, the detections, a surface and the config; files
-are written by ``write_fusion``. The surface is anything with the HeightField interface
-(reconstructed mesh, synthetic truth, a plane), see :mod:`pavemap.geometry`.
+``fuse`` is a pure function of the sequence, stage 2's filter result, a surface and the config;
+it writes nothing (the run folder's files are written by :mod:`pavemap.export`). The surface is
+anything with the HeightField interface (reconstructed mesh, synthetic truth, a plane), see
+:mod:`pavemap.geometry`.
 """
 
 from __future__ import annotations
 
-import logging
+import dataclasses
 import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import shapely
 import torch
 
-from pavemap.detect.filter import INVALID_REASONS, filter_detections
+from pavemap.device import resolve_device
 from pavemap.fuse.accumulate import Accumulators, accumulate, probability
-from pavemap.fuse.associate import Association, associate_footprint, associate_hit, associate_ray, rays_through
+from pavemap.fuse.associate import associate_detections
 from pavemap.fuse.config import FusionConfig
 from pavemap.fuse.instances import build_instances, priority
 from pavemap.fuse.maps import bev_grid, splat
+from pavemap.geometry.grid import GridSpec
 from pavemap.types import DEFECT_CODES, NUM_DEFECT_CLASSES, DefectInstance, Detection, Sequence
 
-log = logging.getLogger("pavemap")
+# Filter outcomes that are not "unusable input" (every other reason counts as invalid).
+_FILTER_OUTCOMES = ("kept", "low_conf", "off_road")
+
+
+class Filtered(Protocol):
+    """What fusion needs of stage 2's result (:class:`pavemap.detect.filter.FilterResult`)."""
+
+    kept: list[Detection]
+    records: list[dict]
+    config: object
+    mask_used: str
+    mask_fallbacks: dict[str, int]
+    seconds: float
 
 
 @dataclass
 class FusionResult:
     """Everything stage 3 produced.
 
-    prob_map (H, W) float32 and class_maps (4, H, W) float32 on ``grid`` (x0, y0 = centre of
-    cell [0, 0], res, shape [H, W]; row = y); vertex_prob (ny, nx) float32 on the surface grid;
-    detections: one record per input detection (filter reason, r_road, mapped, distance_m,
-    hit_xyz, vertices, instance); baseline: the single-frame baseline instances (every mapped
-    detection alone, no fusion) for the evaluation.
+    prob_map (H, W) float32 and class_maps (4, H, W) float32 on ``grid`` (rows go +y);
+    vertex_prob (ny, nx) float32 on ``surface_grid``; detections: one record per input detection
+    (filter reason, r_road, mapped, distance_m, hit_xyz, vertices, instance); baseline: the
+    single-frame baseline instances (every mapped detection alone, no fusion) for the evaluation.
     """
 
     instances: list[DefectInstance]
-    grid: dict
+    grid: GridSpec
     prob_map: np.ndarray
     class_maps: np.ndarray
     vertex_prob: np.ndarray
     detections: list[dict]
     metrics: dict
+    surface_grid: GridSpec
     baseline: list[DefectInstance] = field(default_factory=list)
-    surface_grid: dict = field(default_factory=dict)
     vertex_counts: np.ndarray | None = None  # (ny, nx, 4) int32 per-class observations
     vertex_severity: np.ndarray | None = None  # (ny, nx) float64 EMA severity
 
 
+def surface_grid(surface) -> GridSpec:  # noqa: ANN001
+    """The vertex grid of a HeightField-like surface."""
+    grid = getattr(surface, "grid", None)
+    if isinstance(grid, GridSpec):
+        return grid
+    return GridSpec(surface.x0, surface.y0, surface.res, surface.nx, surface.ny)
+
+
 def _device(config: FusionConfig, surface) -> torch.device:  # noqa: ANN001
-    if config.device == "auto":
-        return surface.heights.device
-    if config.device.startswith("cuda") and not torch.cuda.is_available():
-        log.warning("fusion device %s is not available; using the CPU", config.device)
-        return torch.device("cpu")
-    return torch.device(config.device)
+    return surface.heights.device if config.device == "auto" else resolve_device(config.device)
 
 
-def associate_detections(seq: Sequence, dets: list[Detection], surface, config: FusionConfig) -> Association:  # noqa: ANN001
-    """Run the configured association mode for (already filtered) detections on ``surface``."""
-    dev = surface.heights.device
-    n = len(dets)
-    frames = seq.frame_by_index()
-    K = torch.tensor(np.array([seq.cameras[d.camera].K for d in dets]).reshape(n, 3, 3), dtype=torch.float64,
-                     device=dev)
-    T = torch.tensor(np.array([frames[d.frame].views[d.camera].T_world_cam for d in dets]).reshape(n, 4, 4),
-                     dtype=torch.float64, device=dev)
-    boxes = torch.tensor(np.array([d.box for d in dets], dtype=np.float64).reshape(n, 4), device=dev)
-    conf = torch.tensor([d.conf for d in dets], dtype=torch.float64, device=dev)
-    if config.association == "footprint":
-        return associate_footprint(surface, boxes, K, T, config)
-    centre = torch.stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2], 1)
-    o, d = rays_through(K, T, centre)
-    if config.association == "ray":
-        return associate_ray(surface, o, d, conf, config)
-    return associate_hit(surface, o, d, config, boxes=boxes, K=K, T=T)
-
-
-def fuse(
-    seq: Sequence, detections: list[Detection], surface, config: FusionConfig,  # noqa: ANN001
-    mesh: object | None = None, progress: bool = True,
-) -> FusionResult:
-    """Filter, map and fuse detections onto ``surface`` (a HeightField) -> instances, maps, metrics."""
+def fuse(seq: Sequence, filtered: Filtered, surface, config: FusionConfig,  # noqa: ANN001
+         progress: bool = True) -> FusionResult:
+    """Map and fuse stage 2's kept detections onto ``surface`` (a HeightField) -> instances, maps, metrics."""
     from tqdm import tqdm
 
     config.validate()
     t0 = time.perf_counter()
-    steps = tqdm(total=5, desc="fuse", unit="step", disable=not progress, leave=False)
-    fstats: dict = {}
-    kept, records = filter_detections(seq, detections, config, mesh=mesh, stats=fstats)
+    steps = tqdm(total=4, desc="fuse", unit="step", disable=not progress, leave=False)
+    kept = filtered.kept
+    records = [dict(r) for r in filtered.records]  # fusion adds its fields to copies
     kept_idx = np.array([r["index"] for r in records if r["kept"]], dtype=np.int64)
-    steps.update()
-    t_filter = time.perf_counter() - t0
-
     dev = _device(config, surface)
     if surface.heights.device != dev:
         surface = surface.to(dev)
+    grid_v = surface_grid(surface)
     with torch.no_grad():
-        t1 = time.perf_counter()
         asc = associate_detections(seq, kept, surface, config)
         steps.update()
-        t_assoc = time.perf_counter() - t1
-        # Application order for the EMA: frame order of the sequence, then input order.
-        frame_rank = {f.index: r for r, f in enumerate(seq.frames)}
-        n = len(kept)
-        fr = np.array([frame_rank[d.frame] for d in kept], dtype=np.int64)
-        order_np = np.lexsort((kept_idx, fr)) if n else np.zeros(0, dtype=np.int64)
-        order = torch.empty(n, dtype=torch.long, device=dev)
-        order[torch.as_tensor(order_np, device=dev)] = torch.arange(n, device=dev)
-        cls = torch.tensor([d.cls for d in kept], dtype=torch.long, device=dev)
-        conf = torch.tensor([d.conf for d in kept], dtype=torch.float64, device=dev)
-        ny, nx = surface.ny, surface.nx
-        acc = accumulate(ny * nx, asc.det, asc.vid, order, cls, conf, config.alpha, config.severity_weights)
-        # Probabilities on the observed vertices only; every other vertex has P = 0 (tanh form).
-        obs_t = acc.seen if acc.seen is not None else torch.nonzero(acc.n > 0).squeeze(1)
-        p_obs, pc_obs = probability(Accumulators(acc.counts[obs_t], acc.sev[obs_t], acc.conf[obs_t]), config.prob)
+        t_assoc = time.perf_counter() - t0
+        acc, obs_t, p_obs, pc_obs = _accumulate(seq, kept, kept_idx, asc, grid_v, config, dev)
         steps.update()
 
-    V = ny * nx
+    V = grid_v.nx * grid_v.ny
+    ny, nx = grid_v.shape
     valid = surface.valid.reshape(-1).cpu().numpy()
     counts = acc.counts.cpu().numpy()
     sev = acc.sev.cpu().numpy()
-    conf_v = acc.conf.cpu().numpy()
     obs_all = obs_t.cpu().numpy()
     keep_obs = valid[obs_all]  # associations only pick valid vertices; kept explicit for safety
     obs = obs_all[keep_obs]
@@ -143,22 +121,67 @@ def fuse(
     pair_vid = asc.vid.cpu().numpy()
     instances, labels = build_instances(
         defect.reshape(ny, nx), p_dense.reshape(ny, nx), counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
-        sev.reshape(ny, nx), conf_v.reshape(ny, nx), pair_det, pair_vid,
-        surface.x0, surface.y0, surface.res, min_obs=config.min_instance_obs, merge_gap_m=config.merge_gap_m,
+        sev.reshape(ny, nx), acc.conf.cpu().numpy().reshape(ny, nx), pair_det, pair_vid,
+        grid_v.x0, grid_v.y0, grid_v.res, min_obs=config.min_instance_obs, merge_gap_m=config.merge_gap_m,
     )
     steps.update()
 
-    grid = bev_grid(surface.x0, surface.y0, surface.res, nx, ny, config.splat_res)
+    grid = bev_grid(grid_v, config.splat_res)
     jj, ii = np.divmod(obs, nx)
-    xy = np.stack([surface.x0 + ii * surface.res, surface.y0 + jj * surface.res], 1)
+    xy = np.stack([grid_v.x0 + ii * grid_v.res, grid_v.y0 + jj * grid_v.res], 1)
     # Only observed vertices carry P > 0 (in the sigmoid form the 0.5 floor is left out of the map,
     # so the map stays readable: the erratum the default fixes).
     values = np.concatenate([p_obs_np[None], pc_obs_np.T], 0)
-    maps = splat(values, xy, surface.res, grid, config.splat_sigma)
+    maps = splat(values, xy, grid_v.res, grid, config.splat_sigma)
     steps.update()
     steps.close()
 
-    # Per-detection records.
+    inst_of, hits, ground_px = _detection_records(seq, kept, kept_idx, records, asc, labels, pair_det, pair_vid)
+    if config.centroid == "detections":
+        _centroids_from_detections(instances, inst_of, hits, ground_px)
+    baseline = baseline_instances(kept, pair_det, pair_vid, grid_v.x0, grid_v.y0, grid_v.res, nx,
+                                  severity_weights=config.severity_weights)
+    metrics = paper_metrics(records, defect[obs], int(valid.sum()), nobs_obs, sev[obs], instances, config, filtered)
+    metrics["seconds"] = {"filter": round(filtered.seconds, 3), "associate": round(t_assoc, 3),
+                          "total": round(filtered.seconds + time.perf_counter() - t0, 3)}
+    metrics["surface"] = {**grid_v.to_dict(), "valid_vertices": int(valid.sum())}
+    return FusionResult(
+        instances=instances, grid=grid, prob_map=maps[0], class_maps=maps[1:],
+        vertex_prob=p_dense.reshape(ny, nx), detections=records, metrics=metrics, surface_grid=grid_v,
+        baseline=baseline, vertex_counts=counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
+        vertex_severity=sev.reshape(ny, nx),
+    )
+
+
+def _accumulate(seq: Sequence, kept: list[Detection], kept_idx: np.ndarray, asc, grid_v: GridSpec,  # noqa: ANN001
+                config: FusionConfig, dev: torch.device):  # noqa: ANN202
+    """Accumulators over all vertices, the observed vertex ids and their probabilities (total, per class)."""
+    # Application order for the EMA: frame order of the sequence, then input order.
+    frame_rank = {f.index: r for r, f in enumerate(seq.frames)}
+    n = len(kept)
+    fr = np.array([frame_rank[d.frame] for d in kept], dtype=np.int64)
+    order_np = np.lexsort((kept_idx, fr)) if n else np.zeros(0, dtype=np.int64)
+    order = torch.empty(n, dtype=torch.long, device=dev)
+    order[torch.as_tensor(order_np, device=dev)] = torch.arange(n, device=dev)
+    cls = torch.tensor([d.cls for d in kept], dtype=torch.long, device=dev)
+    conf = torch.tensor([d.conf for d in kept], dtype=torch.float64, device=dev)
+    acc = accumulate(grid_v.nx * grid_v.ny, asc.det, asc.vid, order, cls, conf, config.alpha,
+                     config.severity_weights)
+    # Probabilities on the observed vertices only; every other vertex has P = 0 (tanh form).
+    obs_t = acc.seen if acc.seen is not None else torch.nonzero(acc.n > 0).squeeze(1)
+    p_obs, pc_obs = probability(Accumulators(acc.counts[obs_t], acc.sev[obs_t], acc.conf[obs_t]), config.prob)
+    return acc, obs_t, p_obs, pc_obs
+
+
+def _detection_records(seq: Sequence, kept: list[Detection], kept_idx: np.ndarray, records: list[dict], asc,  # noqa: ANN001
+                       labels: np.ndarray, pair_det: np.ndarray, pair_vid: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Add fusion's fields to the per-detection records.
+
+    Returns, per kept detection: instance id (K,) int64 (0 = none), surface point (K, 3) float64
+    (nan on a miss) and the road metres one image row spans there (K,) float64.
+    """
+    n = len(kept)
     mapped = asc.mapped.cpu().numpy()
     dist = asc.distance.cpu().numpy()
     hits = asc.hit.cpu().numpy()
@@ -166,8 +189,6 @@ def fuse(
     nvert = np.bincount(pair_det, minlength=n) if n else np.zeros(0, np.int64)
     lab_flat = labels.reshape(-1)
     inst_of = instance_of_detections(pair_det, lab_flat[pair_vid] if len(pair_vid) else pair_vid, n)
-    if config.centroid == "detections":
-        _centroids_from_detections(instances, inst_of, hits, ground_px)
     for r in records:
         r.update(mapped=False, distance_m=None, hit_xyz=None, vertices=0, instance=None)
     for k, i in enumerate(kept_idx):
@@ -178,22 +199,7 @@ def fuse(
         rec["vertices"] = int(nvert[k])
         rec["ground_px_m"] = None if not np.isfinite(ground_px[k]) else round(float(ground_px[k]), 4)
         rec["instance"] = int(inst_of[k]) if inst_of[k] > 0 else None
-
-    baseline = baseline_instances(kept, pair_det, pair_vid, surface.x0, surface.y0, surface.res, nx,
-                                  severity_weights=config.severity_weights)
-    metrics = paper_metrics(records, defect[obs], int(valid.sum()), nobs_obs, sev[obs], instances, config, fstats)
-    metrics["seconds"] = {"filter": round(t_filter, 3), "associate": round(t_assoc, 3),
-                          "total": round(time.perf_counter() - t0, 3)}
-    metrics["surface"] = {"x0": surface.x0, "y0": surface.y0, "res": surface.res, "shape": [ny, nx],
-                          "valid_vertices": int(valid.sum())}
-    return FusionResult(
-        instances=instances, grid=grid, prob_map=maps[0], class_maps=maps[1:],
-        vertex_prob=p_dense.reshape(ny, nx),
-        detections=records, metrics=metrics, baseline=baseline,
-        surface_grid={"x0": surface.x0, "y0": surface.y0, "res": surface.res, "shape": [ny, nx]},
-        vertex_counts=counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
-        vertex_severity=sev.reshape(ny, nx),
-    )
+    return inst_of, hits, ground_px
 
 
 def instance_of_detections(pair_det: np.ndarray, pair_label: np.ndarray, n: int) -> np.ndarray:
@@ -295,7 +301,7 @@ def baseline_instances(kept: list[Detection], pair_det: np.ndarray, pair_vid: np
 
 
 def paper_metrics(records: list[dict], defect: np.ndarray, n_valid: int, nobs: np.ndarray, sev: np.ndarray,
-                  instances: list[DefectInstance], config: FusionConfig, fstats: dict) -> dict:
+                  instances: list[DefectInstance], config: FusionConfig, filtered: Filtered) -> dict:
     """SPEC §4 statistics plus the bad-input counts.
 
     total = detections passing sanitising and the confidence threshold (what the paper's detector
@@ -304,7 +310,7 @@ def paper_metrics(records: list[dict], defect: np.ndarray, n_valid: int, nobs: n
     ``defect``, ``nobs``, ``sev`` are given on the observed vertices only; ``n_valid`` counts all valid ones.
     """
     reasons = Counter(r["reason"] for r in records)
-    invalid = {k: reasons.get(k, 0) for k in INVALID_REASONS if reasons.get(k, 0)}
+    invalid = {k: v for k, v in sorted(reasons.items()) if k not in _FILTER_OUTCOMES}
     kept = [r for r in records if r["kept"]]
     total = len(kept) + reasons.get("off_road", 0)
     mapped = [r for r in kept if r["mapped"]]
@@ -331,53 +337,13 @@ def paper_metrics(records: list[dict], defect: np.ndarray, n_valid: int, nobs: n
         "instances": len(instances),
         "instances_by_class": {c: sum(1 for i in instances if i.cls == k) for k, c in enumerate(DEFECT_CODES)},
         "association": config.association,
-        "mask": fstats.get("mask_used", config.mask),
-        "mask_fallbacks": fstats.get("mask_fallbacks", {}),
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(config).items()},
+        "mask": filtered.mask_used,
+        "mask_fallbacks": dict(filtered.mask_fallbacks),
+        "config": {"filter": _plain(filtered.config), "fusion": _plain(config)},
     }
 
 
-def instances_to_features(instances: list[DefectInstance]) -> dict:
-    """GeoJSON FeatureCollection in local world metres (x, y), one feature per instance."""
-    feats = []
-    for inst in instances:
-        feats.append({
-            "type": "Feature",
-            "geometry": shapely.geometry.mapping(inst.polygon),
-            "properties": {
-                "id": inst.id, "cls": inst.cls, "name": inst.code, "type": inst.name,
-                "severity_mean": round(inst.severity_mean, 4), "severity_max": round(inst.severity_max, 4),
-                "confidence": round(inst.confidence, 4), "observations": inst.observations,
-                "probability": round(inst.probability, 4), "area_m2": round(inst.area_m2, 4),
-                "length_m": round(inst.length_m, 3), "centroid": [round(c, 3) for c in inst.centroid],
-                "priority": inst.priority, **{k: v for k, v in inst.extra.items()},
-            },
-        })
-    return {"type": "FeatureCollection", "crs_note": "local world metres (x, y), pavemap", "features": feats}
-
-
-def write_fusion(result: FusionResult, out_dir: Path) -> None:
-    """defects.geojson (local metres), baseline_defects.geojson, defect_map.npy (+ .json grid),
-    defect_map_<code>.npy, vertex_prob.npy, metrics.json, detections_mapped.jsonl - all atomically."""
-    import json
-
-    from pavemap.io.atomic import atomic_path, atomic_write_json, atomic_write_text
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / "defects.geojson", instances_to_features(result.instances), indent=None)
-    atomic_write_json(out / "baseline_defects.geojson", instances_to_features(result.baseline), indent=None)
-
-    def save(name: str, a: np.ndarray) -> None:
-        with atomic_path(out / name) as tmp, open(tmp, "wb") as fh:
-            np.save(fh, a)
-
-    save("defect_map.npy", result.prob_map.astype(np.float32))
-    for k, code in enumerate(DEFECT_CODES):
-        save(f"defect_map_{code}.npy", result.class_maps[k].astype(np.float32))
-    save("vertex_prob.npy", result.vertex_prob)
-    atomic_write_json(out / "defect_map.json", {**result.grid, "surface": result.surface_grid,
-                                                "note": "cell [r, c] centre at (x0 + c*res, y0 + r*res)"})
-    atomic_write_json(out / "metrics.json", result.metrics)
-    atomic_write_text(out / "detections_mapped.jsonl",
-                      "".join(json.dumps(r, allow_nan=False) + "\n" for r in result.detections))
+def _plain(cfg: object) -> dict:
+    """A config dataclass as a JSON-ready dict (tuples as lists)."""
+    d = dataclasses.asdict(cfg) if dataclasses.is_dataclass(cfg) else dict(vars(cfg))
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}

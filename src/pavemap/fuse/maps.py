@@ -11,20 +11,25 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-
-def bev_grid(x0: float, y0: float, res: float, nx: int, ny: int, splat_res: float) -> dict:
-    """Map grid covering the vertex grid: cell centres at ``(x0 + c*s, y0 + r*s)``; shape [H, W]."""
-    W = int(np.floor((nx - 1) * res / splat_res + 1e-9)) + 1
-    H = int(np.floor((ny - 1) * res / splat_res + 1e-9)) + 1
-    return {"x0": float(x0), "y0": float(y0), "res": float(splat_res), "shape": [H, W]}
+from pavemap.geometry.grid import GridSpec
 
 
-def splat(values: np.ndarray, xy: np.ndarray, vertex_res: float, grid: dict, sigma: float) -> np.ndarray:
-    """values (C, V) at vertex positions xy (V, 2) -> maps (C, H, W) float32."""
-    H, W = grid["shape"]
-    s = grid["res"]
-    col = np.clip(np.round((xy[:, 0] - grid["x0"]) / s).astype(np.int64), 0, W - 1)
-    row = np.clip(np.round((xy[:, 1] - grid["y0"]) / s).astype(np.int64), 0, H - 1)
+def bev_grid(surface: GridSpec, splat_res: float) -> GridSpec:
+    """Map grid of step ``splat_res`` inside the vertex grid ``surface``, sharing its origin.
+
+    Cell centres at ``(x0 + c*s, y0 + r*s)``; the last column / row stays within the vertex grid.
+    """
+    W = int(np.floor((surface.nx - 1) * surface.res / splat_res + 1e-9)) + 1
+    H = int(np.floor((surface.ny - 1) * surface.res / splat_res + 1e-9)) + 1
+    return GridSpec(surface.x0, surface.y0, splat_res, W, H)
+
+
+def splat(values: np.ndarray, xy: np.ndarray, vertex_res: float, grid: GridSpec, sigma: float) -> np.ndarray:
+    """values (C, V) at vertex positions xy (V, 2) -> maps (C, H, W) float32 on ``grid``."""
+    H, W = grid.shape
+    s = grid.res
+    col = np.clip(np.round((xy[:, 0] - grid.x0) / s).astype(np.int64), 0, W - 1)
+    row = np.clip(np.round((xy[:, 1] - grid.y0) / s).astype(np.int64), 0, H - 1)
     flat = row * W + col
     out = np.empty((values.shape[0], H, W), dtype=np.float32)
     area = (vertex_res / s) ** 2

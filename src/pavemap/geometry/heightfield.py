@@ -20,16 +20,12 @@ theorem at the root).
 
 from __future__ import annotations
 
-import json
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
-import numpy as np
 import torch
 from torch.nn import functional as F  # noqa: N812
 
-from pavemap.io.sequence import SequenceError
+from pavemap.geometry.grid import GridSpec
 
 
 @dataclass
@@ -52,6 +48,11 @@ class HeightField:
     @property
     def nx(self) -> int:
         return int(self.heights.shape[1])
+
+    @property
+    def grid(self) -> GridSpec:
+        """The vertex grid (origin, step, size) of this field."""
+        return GridSpec(self.x0, self.y0, self.res, self.nx, self.ny)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -103,36 +104,6 @@ class HeightField:
         """A flat, fully valid field of nx by ny vertices at height z."""
         return cls(float(x0), float(y0), float(res), torch.full((ny, nx), float(z)),
                    torch.ones((ny, nx), dtype=torch.bool))
-
-    @classmethod
-    def from_truth(cls, seq_root: str | os.PathLike) -> HeightField:
-        """The synthetic truth raster ``truth/height.npy`` + ``truth/height.json`` (SPEC §6).
-
-        Non-finite heights become invalid vertices.
-        """
-        root = Path(seq_root)
-        meta_f, arr_f = root / "truth" / "height.json", root / "truth" / "height.npy"
-        for f in (meta_f, arr_f):
-            if not f.is_file():
-                raise SequenceError(f, "height truth not found")
-        try:
-            meta = json.loads(meta_f.read_text(encoding="utf-8"))
-            x0, y0, res = float(meta["x_min"]), float(meta["y_min"]), float(meta["resolution"])
-            shape = tuple(int(s) for s in meta["shape"])
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-            raise SequenceError(meta_f, f"needs x_min, y_min, resolution, shape ({e})") from None
-        try:
-            a = np.load(arr_f)
-        except (OSError, ValueError) as e:
-            raise SequenceError(arr_f, f"cannot read ({e})") from None
-        if a.ndim != 2 or tuple(a.shape) != shape:
-            raise SequenceError(arr_f, f"shape {list(a.shape)} does not match height.json shape {list(shape)}")
-        if not res > 0:
-            raise SequenceError(meta_f, f"resolution must be positive, got {res}")
-        a = a.astype(np.float32)
-        valid = np.isfinite(a)
-        return cls(x0, y0, res, torch.from_numpy(np.where(valid, a, 0.0).astype(np.float32)),
-                   torch.from_numpy(valid))
 
 
 @dataclass

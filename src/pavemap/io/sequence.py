@@ -233,7 +233,11 @@ def read_sequence(root: str | os.PathLike, validate: bool = True) -> Sequence:
     """Read ``root/sequence.json``. With ``validate``, also check files on disk (raises on the first problems)."""
     root = Path(root)
     file = root / SEQUENCE_FILE
-    if not root.is_dir():
+    try:
+        is_dir = root.is_dir()
+    except OSError as e:  # e.g. a name too long for the file system
+        raise SequenceError(root, f"cannot be read as a folder ({e.strerror})") from None
+    if not is_dir:
         raise SequenceError(root, "is not a folder (expected a sequence folder holding sequence.json)")
     if not file.is_file():
         raise SequenceError(file, "not found; is this a pavemap sequence folder? (see README: sequence folder)")

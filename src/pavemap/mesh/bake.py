@@ -5,8 +5,8 @@ training pixel ``p`` pulls each vertex ``k`` of its triangle towards its colour 
 weight ``b_pk``; by Jensen an upper bound of the rendered L2 loss) are the weighted means
 ``c_k = sum_p b_pk I_p / sum_p b_pk``. One pass over the pixels gives them. Why we need it: sparse Adam
 at the SPEC's rate 0.1 moves each colour by about 0.1 per step and, in the ~140 steps a CPU run affords,
-leaves the colours noisy (the held-out PSNR was 1.6 dB below what the same surface supports), and vertices
-that no training pixel hits keep their N(0, 0.01) start: black spots where a held-out view sees them.
+leaves the colours noisier than the same surface supports (README, stage 1), and vertices that no
+training pixel hits keep their N(0, 0.01) start: black spots where a held-out view sees them.
 Those are filled from their neighbours by normalised Gaussian smoothing.
 """
 
@@ -17,6 +17,7 @@ from torch.nn import functional as F  # noqa: N812
 
 from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, surface_bounds
 from pavemap.mesh.data import PixelPool
+from pavemap.mesh.model import RoadMeshModel
 from pavemap.mesh.render import view_rays
 
 
@@ -33,12 +34,11 @@ def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 @torch.no_grad()
-def bake_colours(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float, res: float,
-                 pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
+def bake_colours(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
                  batch: int = 262144, sharpen_iters: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Weighted-mean colours of the grid vertices from the pool's pixels on a fixed surface.
 
-    heights: (ny, nx) float32 dense heights; valid: (ny, nx) bool crop; T: (V, 4, 4) camera-to-world poses
+    surface: float32 dense heights (ny, nx) and bool crop; T: (V, 4, 4) camera-to-world poses
     of the pool's views (refined ones where pose refinement runs). Returns ``rgb`` (ny, nx, 3) float32 in
     [0, 1], ``support`` (ny, nx) float32, the summed barycentric weight of the pixels behind each vertex
     (0: no view sees it), and ``coloured`` (ny, nx) bool. Vertices without support get the normalised
@@ -47,18 +47,18 @@ def bake_colours(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: floa
 
     ``sharpen_iters``: that many Jacobi steps towards the exact least-squares colours, ``c += (sum_p b_pk r_p)
     / (sum_p b_pk)`` with ``r_p`` the pixel's residual on the current colours. The weighted mean blurs
-    (each pixel is spread over its triangle's three vertices); the exact solution overfits single pixels.
-    With the true surface of the nuScenes-like drive, held-out PSNR was 26.68 dB for the mean, 27.25 / 27.31
-    / 27.28 dB after 1 / 2 / 3 steps and 26.11 dB at the exact solution (LSQR).
+    (each pixel is spread over its triangle's three vertices); the exact solution overfits single pixels
+    (held-out PSNR per number of steps: README, stage 1).
     """
+    hf = surface
+    heights = hf.heights
     ny, nx = heights.shape
-    hf = HeightField(x0, y0, res, heights, valid)
     bounds = surface_bounds(hf, pool.uv.dtype)
     acc = torch.zeros(ny * nx, 4, dtype=torch.float64, device=heights.device)
     cached: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (vertex ids, weights, colours) per batch
     for s in range(0, len(pool), batch):
         sl = slice(s, s + batch)
-        o, d = view_rays(pool.Kinv, T, pool.view[sl], pool.uv[sl])
+        o, d = view_rays(pool.K, T, pool.view[sl], pool.uv[sl])
         cells = find_hits(hf, o, d, max_dist, bounds=bounds)
         if cells.idx.numel() == 0:
             continue
@@ -89,3 +89,17 @@ def bake_colours(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: floa
     coloured = (support > 0) | (fill_w > 1e-9)
     rgb = torch.where((support > 0)[..., None], rgb, torch.where((fill_w > 1e-9)[..., None], fill, 0.0))
     return rgb.clamp(0, 1).float(), support.float(), coloured
+
+
+@torch.no_grad()
+def bake_into(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, fill: float, max_dist: float,
+              fill_sigma: float = 1.0, sharpen_iters: int = 0) -> torch.Tensor:
+    """Replace the model's vertex colours by the baked ones on its current surface (where any pixel reaches
+    them, directly or through the gap fill), seen from poses T (V, 4, 4); ``fill`` is the height off the crop.
+    Returns (Nv,) bool: the vertices some training pixel sees."""
+    rgb, support, coloured = bake_colours(model.field(model.dense_heights(fill)), pool, T, max_dist, fill_sigma,
+                                          sharpen_iters=sharpen_iters)
+    flat = model.vertex_flat_ids
+    ok = coloured.reshape(-1)[flat]
+    model.rgb.data[ok] = rgb.reshape(-1, 3)[flat][ok].to(model.rgb.dtype)
+    return support.reshape(-1)[flat] > 0

@@ -1,12 +1,20 @@
-"""Stage-1 configuration (SPEC §1) with the nuScenes-like and KITTI-like presets."""
+"""Stage-1 configuration (SPEC §1) with the nuScenes-like and KITTI-like presets.
+
+Measured effects of the settings (best values, before / after) are in the README's stage-1 section
+and ``bench/results/mesh.json`` / ``pose.json``; the comments here say why a setting exists.
+"""
 
 from __future__ import annotations
 
+import math
+import typing
 from dataclasses import asdict, dataclass, fields
+from typing import Literal
 
 from pavemap.errors import PavemapError
 
 PRESETS = ("nuscenes", "kitti")
+PosePer = Literal["frame", "view"]
 
 
 @dataclass
@@ -30,8 +38,8 @@ class MeshConfig:
     lr_height: float = 0.001
     lr_pose: float = 0.001  # SPEC's camera-pose rate, used for the translation correction (m)
     # The rotation correction (rad) gets its own rate: Adam moves a parameter ~lr per step, and a rotation
-    # of lr rad shifts ground seen at 5-20 m by 5-20 lr metres, i.e. at the SPEC's rate the rotation would
-    # jump 10x further than the translation and oscillate (0.3 deg grew to 2.5 deg on the test scene).
+    # of lr rad shifts ground seen at 5-20 m by 5-20 lr metres, so at the SPEC's rate the rotation would
+    # jump 10x further than the translation and oscillate.
     lr_pose_rot: float = 0.0001
     pose_warmup: float = 0.25  # fraction of the steps before pose refinement starts
     # Before training, per-view Gauss-Newton alignment to the baked texture and depth (pavemap.mesh.pose):
@@ -61,36 +69,38 @@ class MeshConfig:
     frame_stride: int = 1
     holdout_every: int = 10  # every k-th frame is held out for metrics (0: none)
     seed: int = 0
-    device: str = "auto"
-    threads: int | None = None  # torch CPU threads during the run (None: leave torch's setting)
+    device: str = "auto"  # auto, cpu, cuda, cuda:N (pavemap.device.resolve_device)
+    threads: int | None = None  # torch CPU threads during the run (None or 0: leave torch's setting)
     pose_refine: bool = False
     # "frame": the cameras of a frame move together (one rigid rig: the error of an ego pose; SPEC: "a small
     # SE(3) correction per frame"); "view": every image its own correction (per-camera calibration errors).
-    # On the nuScenes-like drive per frame reached 0.10 m / 0.14 deg, per camera 0.13 m / 0.28 deg (pose.json).
-    pose_per: str = "frame"
+    pose_per: PosePer = "frame"
     camera_height: float = 1.5  # initial road plane below the median camera centre (m)
-    init_from_depth: bool = True  # start from the binned measured ground where depth exists (see _depth_relief)
-    init_cell_m: float = 1.0  # bin size of that initial surface (m): 1 m measured best of 0.25-2 m
-    # Finer bins (m) holding the median of what the 1 m bins miss, where >= 3 points fall: keeps curbs sharp
-    # (0.3 m measured best of 0.1-0.5 m on the nuScenes-like drive; 0 turns it off).
+    # Start from the binned measured ground where depth exists (pavemap.mesh.init_surface.depth_relief).
+    init_from_depth: bool = True
+    init_cell_m: float = 1.0  # bin size of that initial surface (m)
+    # Finer bins (m) holding the median of what the coarse bins miss, where >= 3 points fall: keeps curbs
+    # sharp (0 turns it off).
     init_fine_cell_m: float = 0.3
     # Ground no depth point reaches takes the relief measured at the same cross-track offset within about this
-    # many metres along the road (0: isotropic fill only; see train._fill_along_track). Initial surface RMSE
-    # nuScenes-like / kitti-like: 0.022 / 0.035 m without; 0.015 / 0.022 (2 m), 0.014 / 0.013 (4 m), 0.014 / 0.012 (8).
+    # many metres along the road (0: isotropic fill only; see init_surface.fill_along_track).
     init_along_fill_m: float = 4.0
     init_height_search: bool = True  # refine the initial plane height by multi-view colour agreement
     max_dist: float = 80.0  # longest ray considered (m)
     # Closed-form colours on the current surface (pavemap.mesh.bake) before the first step and after the last:
-    # Adam alone left the held-out PSNR ~1.6 dB below what the surface supports in a CPU budget.
+    # in a CPU budget Adam alone leaves the colours noisier than the surface supports.
     bake_init: bool = True
     bake_final: bool = True
     # Jacobi steps from the weighted mean towards the least-squares colours in the final bake (bake_colours):
-    # 2 measured best of 0-3 (the mean blurs, the exact solution overfits).
+    # the mean blurs, the exact solution overfits single pixels.
     bake_sharpen_iters: int = 2
     bake_fill_sigma: float = 1.0  # cells: vertices no training pixel hits take their neighbours' colour
     height_refresh_steps: int = 16  # steps between full-grid height re-evaluations used by the march
     resume: bool = True  # continue from DIR/checkpoint.pt when it matches
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
+
+    def __post_init__(self) -> None:
+        self.validate()
 
     @classmethod
     def preset(cls, name: str) -> MeshConfig:
@@ -110,23 +120,54 @@ class MeshConfig:
         return cls(**{k: v for k, v in d.items() if k in names})
 
     def validate(self) -> None:
-        """Raise PavemapError on values that cannot work."""
-        positive = ("resolution", "crop_m", "render_scale", "eval_scale", "max_dist", "pixel_fraction",
-                    "bake_fill_sigma", "pose_prior_deg", "pose_prior_m")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise PavemapError(f"mesh config: {name} must be positive, got {getattr(self, name)}")
+        """Raise PavemapError naming ``mesh.<field>`` on a value of the wrong type or one that cannot work."""
+        _check_types(self)
+        for name in ("resolution", "crop_m", "render_scale", "eval_scale", "max_dist", "pixel_fraction",
+                     "bake_fill_sigma", "pose_prior_deg", "pose_prior_m", "camera_height", "init_cell_m",
+                     "depth_outlier_m", "lr_decay_final", "lr_height_decay_final"):
+            _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
-                     "pose_align_rounds"):
-            if getattr(self, name) < 0:
-                raise PavemapError(f"mesh config: {name} must be >= 0, got {getattr(self, name)}")
-        if min(self.frame_stride, self.pixels_per_step, self.height_pixels_per_step, self.hidden,
-               self.pose_bake_every) < 1:
-            raise PavemapError("mesh config: frame_stride, pixels_per_step, height_pixels_per_step, hidden and "
-                               "pose_bake_every must be >= 1")
-        if not 0.0 <= self.pose_warmup <= 1.0:
-            raise PavemapError(f"mesh config: pose_warmup must be in [0, 1], got {self.pose_warmup}")
-        if self.pose_per not in ("view", "frame"):
-            raise PavemapError(f"mesh config: pose_per must be view or frame, got {self.pose_per!r}")
-        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
-            raise PavemapError(f"mesh config: device must be auto, cpu or cuda, got {self.device!r}")
+                     "pose_align_rounds", "seed", "init_fine_cell_m", "init_along_fill_m", "lr_rgb", "lr_sem",
+                     "lr_height", "lr_pose", "lr_pose_rot", "w_rgb", "w_sem", "w_depth", "w_smooth"):
+            _require(self, name, lambda v: v >= 0, "must be >= 0")
+        for name in ("frame_stride", "pixels_per_step", "height_pixels_per_step", "hidden", "pose_bake_every",
+                     "pose_align_pixels_per_view", "height_refresh_steps", "max_bad_steps"):
+            _require(self, name, lambda v: v >= 1, "must be >= 1")
+        _require(self, "pose_warmup", lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]")
+        _require(self, "threads", lambda v: v is None or v >= 0, "must be >= 0 (0 or null: torch's setting)")
+        _require(self, "pose_per", lambda v: v in typing.get_args(PosePer),
+                 f"must be one of {', '.join(typing.get_args(PosePer))}")
+        _require(self, "device", _device_name, "must be auto, cpu, cuda or cuda:N")
+
+
+def _device_name(name: str) -> bool:
+    n = name.strip().lower()
+    return n in ("auto", "cpu", "cuda", "gpu") or n.isdigit() or (n.startswith("cuda:") and n[5:].isdigit())
+
+
+def _require(cfg: MeshConfig, name: str, ok: typing.Callable[[object], bool], what: str) -> None:
+    value = getattr(cfg, name)
+    if isinstance(value, float) and not math.isfinite(value) or not ok(value):
+        raise PavemapError(f"mesh.{name} {what}, got {value!r}")
+
+
+def _check_types(cfg: MeshConfig) -> None:
+    """Each field's value against its annotation (bool, int, float, str, int | None, a Literal)."""
+    hints = typing.get_type_hints(MeshConfig)
+    for f in fields(cfg):
+        value, hint = getattr(cfg, f.name), hints[f.name]
+        allowed = typing.get_args(hint) if typing.get_origin(hint) is not Literal else (str,)
+        kinds = allowed or (hint,)
+        if value is None and type(None) in kinds:
+            continue
+        if bool in kinds:
+            good = isinstance(value, bool)
+        elif float in kinds:
+            good = isinstance(value, int | float) and not isinstance(value, bool)
+        elif int in kinds:
+            good = isinstance(value, int) and not isinstance(value, bool)
+        else:
+            good = isinstance(value, str)
+        if not good:
+            names = " or ".join("null" if k is type(None) else k.__name__ for k in kinds)
+            raise PavemapError(f"mesh.{f.name} must be {names}, got {value!r}")

@@ -23,7 +23,7 @@ class ViewKey:
 class PixelPool:
     """Usable pixels of a set of views at one image scale.
 
-    keys: the views; Kinv (V, 3, 3) float32 inverse intrinsics at that scale; T (V, 4, 4) float32
+    keys: the views; K (V, 3, 3) float32 intrinsics at that scale; T (V, 4, 4) float32
     camera-to-world. Per pixel (P,): view long, uv (P, 2) float32 pixel centres (a depth pixel: its
     LiDAR return's exact position, see _depth_samples), rgb (P, 3) uint8,
     channel long (semantic channel, -1 unknown), road bool (ground-truth road class), depth (P,)
@@ -32,7 +32,7 @@ class PixelPool:
     """
 
     keys: list[ViewKey]
-    Kinv: torch.Tensor
+    K: torch.Tensor
     T: torch.Tensor
     view: torch.Tensor
     uv: torch.Tensor
@@ -46,12 +46,12 @@ class PixelPool:
 
     def to(self, device: torch.device) -> PixelPool:
         f = lambda t: None if t is None else t.to(device)  # noqa: E731
-        return PixelPool(self.keys, f(self.Kinv), f(self.T), f(self.view), f(self.uv), f(self.rgb),
+        return PixelPool(self.keys, f(self.K), f(self.T), f(self.view), f(self.uv), f(self.rgb),
                          f(self.channel), f(self.road), f(self.depth))
 
     def subset(self, keep: torch.Tensor) -> PixelPool:
         d = None if self.depth is None else self.depth[keep]
-        return PixelPool(self.keys, self.Kinv, self.T, self.view[keep], self.uv[keep], self.rgb[keep],
+        return PixelPool(self.keys, self.K, self.T, self.view[keep], self.uv[keep], self.rgb[keep],
                          self.channel[keep], self.road[keep], d)
 
 
@@ -100,7 +100,7 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
     """Load, resize and flatten views. channel_lut (256,) int: class id -> semantic channel (-1 unknown)."""
     movable, sky, road = seq.class_lut("movable"), seq.class_lut("sky"), seq.class_lut("road")
     ground = seq.class_lut("ground")
-    keys, Kinv, T = [], [], []
+    keys, K, T = [], [], []
     cols: dict[str, list[np.ndarray]] = {k: [] for k in ("view", "uv", "rgb", "ch", "road", "depth")}
     for vi, (frame_index, v) in enumerate(views):
         cam = seq.cameras[v.camera].scaled(scale)
@@ -130,7 +130,7 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
             dep = np.where(ground[lab], dep, 0.0).astype(np.float32)
         yy, xx = np.nonzero(keep)
         keys.append(ViewKey(frame_index, v.camera))
-        Kinv.append(np.linalg.inv(cam.K))
+        K.append(cam.K)
         T.append(v.T_world_cam)
         cols["view"].append(np.full(yy.size, vi, dtype=np.int64))
         cols["uv"].append(np.stack([xx, yy], 1).astype(np.float32) if uvmap is None else uvmap[yy, xx])
@@ -142,7 +142,7 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
     has_depth = use_depth and any(v.depth for _, v in views)
     return PixelPool(
         keys,
-        torch.tensor(np.array(Kinv), dtype=torch.float32).reshape(-1, 3, 3),
+        torch.tensor(np.array(K), dtype=torch.float32).reshape(-1, 3, 3),
         torch.tensor(np.array(T), dtype=torch.float32).reshape(-1, 4, 4),
         torch.from_numpy(cat["view"].astype(np.int64)),
         torch.from_numpy(cat["uv"].astype(np.float32).reshape(-1, 2)),

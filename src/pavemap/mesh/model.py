@@ -18,19 +18,15 @@ import torch
 from scipy import ndimage
 from torch import nn
 
-from pavemap.geometry import HeightField
+from pavemap.geometry import GridSpec, HeightField
 from pavemap.types import SemanticClass
 
 
-@dataclass
-class Grid:
-    """The vertex grid: origin, step, size and the crop mask (ny, nx) bool."""
+@dataclass(frozen=True)
+class MeshGrid:
+    """The vertex grid of the mesh (:class:`GridSpec`) and its trajectory crop ``valid`` (ny, nx) bool."""
 
-    x0: float
-    y0: float
-    res: float
-    nx: int
-    ny: int
+    spec: GridSpec
     valid: np.ndarray
 
     @property
@@ -43,22 +39,22 @@ class Grid:
         quad = v[:-1, :-1] & v[1:, 1:]
         return int((quad & v[:-1, 1:]).sum() + (quad & v[1:, :-1]).sum())
 
-    def as_dict(self) -> dict:
-        """The ``mesh_grid`` dict other stages use: rows go +y."""
-        return {"x0": self.x0, "y0": self.y0, "res": self.res, "shape": [self.ny, self.nx]}
+    def vertex_xy(self) -> np.ndarray:
+        """(Nv, 2) float64 world x, y of the kept vertices, in compact order (``flatnonzero(valid)``)."""
+        g = self.spec
+        vid = np.flatnonzero(self.valid.reshape(-1))
+        return np.stack([g.x0 + (vid % g.nx) * g.res, g.y0 + (vid // g.nx) * g.res], 1)
 
 
-def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float) -> Grid:
+def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float) -> MeshGrid:
     """Grid over the trajectory's bounding box grown by ``crop_m``; keep vertices within ``crop_m`` of it.
 
     trajectory_xy: (F, 2) rig positions in order; the distance is to the polyline through them
     (a one-frame sequence gives a disc). Origin snapped to multiples of ``res``.
     """
     t = np.asarray(trajectory_xy, dtype=np.float64).reshape(-1, 2)
-    lo = np.floor((t.min(0) - crop_m) / res) * res
-    hi = np.ceil((t.max(0) + crop_m) / res) * res
-    nx = int(round((hi[0] - lo[0]) / res)) + 1
-    ny = int(round((hi[1] - lo[1]) / res)) + 1
+    spec = GridSpec.covering(t.min(0) - crop_m, t.max(0) + crop_m, res)
+    lo = np.array([spec.x0, spec.y0])
     # Rasterise the polyline densely (half-cell spacing), then an exact Euclidean distance transform.
     pts = [t[:1]]
     for a, b in zip(t[:-1], t[1:], strict=True):
@@ -66,52 +62,11 @@ def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float) -> Grid:
         pts.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
     p = np.concatenate(pts)
     ij = np.rint((p - lo) / res).astype(np.int64)
-    seeds = np.ones((ny, nx), dtype=bool)
-    seeds[np.clip(ij[:, 1], 0, ny - 1), np.clip(ij[:, 0], 0, nx - 1)] = False
+    seeds = np.ones(spec.shape, dtype=bool)
+    seeds[np.clip(ij[:, 1], 0, spec.ny - 1), np.clip(ij[:, 0], 0, spec.nx - 1)] = False
     dist = ndimage.distance_transform_edt(seeds) * res
     # The snapping of seeds to vertices costs up to res/sqrt(2); keep the crop generous by that much.
-    valid = dist <= crop_m + 0.5 * res
-    return Grid(float(lo[0]), float(lo[1]), float(res), nx, ny, valid)
-
-
-def ground_under_trajectory(grid: Grid, traj_xy: np.ndarray, ground_z: np.ndarray, k: int = 4) -> np.ndarray:
-    """(Nv,) float32 initial heights of the kept vertices: inverse-distance weighting of the ground
-    heights ``ground_z`` (F,) under the trajectory points ``traj_xy`` (F, 2), k nearest."""
-    vid = np.flatnonzero(grid.valid.reshape(-1))
-    xy = np.stack([grid.x0 + (vid % grid.nx) * grid.res, grid.y0 + (vid // grid.nx) * grid.res], 1)
-    return idw_ground(traj_xy, ground_z, xy, k)
-
-
-def idw_ground(traj_xy: np.ndarray, ground_z: np.ndarray, xy: np.ndarray, k: int = 4,
-               grade_m: float = 5.0) -> np.ndarray:
-    """(N,) float32 ground height under the trajectory at points ``xy`` (N, 2): inverse-distance weighting
-    of ``ground_z`` (F,) at the trajectory points ``traj_xy`` (F, 2), k nearest; beyond either end of the
-    trajectory the road's grade over its last ``grade_m`` metres continues linearly.
-
-    Why the grade: behind the first frame a forward camera never sees the ground, and holding the first
-    height there left the KITTI-like drive's start ~0.1 m off where the road climbs.
-    """
-    from scipy.spatial import cKDTree
-
-    q = np.asarray(xy, dtype=np.float64).copy()
-    rise = np.zeros(len(q))
-    if len(traj_xy) >= 2:
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj_xy, axis=0), axis=1))])
-        for end, inner in ((0, int(np.searchsorted(along, min(grade_m, along[-1])))),
-                           (len(traj_xy) - 1, int(np.searchsorted(along, max(along[-1] - grade_m, 0.0))))):
-            out = traj_xy[end] - traj_xy[inner]
-            n = float(np.linalg.norm(out))
-            if inner == end or n < 1e-6:
-                continue
-            beyond = np.clip((q - traj_xy[end]) @ (out / n), 0.0, None)  # metres past this end, along the road
-            q -= beyond[:, None] * (out / n)  # the height at the end's cross-section, then the grade
-            rise += beyond * (ground_z[end] - ground_z[inner]) / n
-    k = min(k, len(traj_xy))
-    dist, idx = cKDTree(traj_xy).query(q, k=k)
-    dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
-    w = 1.0 / np.maximum(dist, 0.5) ** 2
-    z = (w * ground_z[idx]).sum(1) / w.sum(1) + rise
-    return z.astype(np.float32)
+    return MeshGrid(spec, dist <= crop_m + 0.5 * res)
 
 
 def positional_encoding(p: torch.Tensor, levels: int) -> torch.Tensor:
@@ -150,24 +105,25 @@ class HeightMLP(nn.Module):
 
 
 class RoadMeshModel(nn.Module):
-    """Learnable stage-1 parameters over a Grid: height MLP, per-vertex RGB and semantic logits."""
+    """Learnable stage-1 parameters over a :class:`MeshGrid`: height MLP, per-vertex RGB and semantic logits."""
 
-    def __init__(self, grid: Grid, num_classes: int, levels: int, hidden: int = 128,
+    def __init__(self, grid: MeshGrid, num_classes: int, levels: int, hidden: int = 128,
                  z_base: float | np.ndarray = 0.0,
                  generator: torch.Generator | None = None):
         super().__init__()
         self.grid = grid
+        g = grid.spec
         flat_valid = torch.from_numpy(grid.valid.reshape(-1).copy())
         vid = torch.nonzero(flat_valid).squeeze(1)
         self.register_buffer("valid_t", torch.from_numpy(grid.valid.copy()))  # (ny, nx) bool crop
         self.register_buffer("vertex_flat_ids", vid)  # compact -> flat id j*nx+i
-        lut = torch.full((grid.nx * grid.ny,), -1, dtype=torch.long)
+        lut = torch.full((g.nx * g.ny,), -1, dtype=torch.long)
         lut[vid] = torch.arange(vid.numel())
         self.register_buffer("flat_to_compact", lut)
-        i, j = vid % grid.nx, vid // grid.nx
-        sx = max((grid.nx - 1) * grid.res, 1e-9)
-        sy = max((grid.ny - 1) * grid.res, 1e-9)
-        p = torch.stack([2.0 * i.double() * grid.res / sx - 1.0, 2.0 * j.double() * grid.res / sy - 1.0], 1)
+        i, j = vid % g.nx, vid // g.nx
+        sx = max((g.nx - 1) * g.res, 1e-9)
+        sy = max((g.ny - 1) * g.res, 1e-9)
+        p = torch.stack([2.0 * i.double() * g.res / sx - 1.0, 2.0 * j.double() * g.res / sy - 1.0], 1)
         self.register_buffer("p_norm", p.float())
         base = np.broadcast_to(np.asarray(z_base, dtype=np.float32), (vid.numel(),)).copy()
         self.register_buffer("z_base", torch.from_numpy(base))  # (Nv,) initial surface per kept vertex
@@ -189,10 +145,31 @@ class RoadMeshModel(nn.Module):
 
     def dense(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
         """Compact per-vertex values (Nv, ...) -> dense (ny, nx, ...) with ``fill`` off the crop."""
-        g = self.grid
-        out = values.new_full((g.ny * g.nx, *values.shape[1:]), fill)
+        ny, nx = self.grid.spec.shape
+        out = values.new_full((ny * nx, *values.shape[1:]), fill)
         out = out.index_copy(0, self.vertex_flat_ids, values)
-        return out.reshape(g.ny, g.nx, *values.shape[1:])
+        return out.reshape(ny, nx, *values.shape[1:])
+
+    @torch.no_grad()
+    def dense_heights(self, fill: float) -> torch.Tensor:
+        """(ny, nx) float32 current heights, ``fill`` off the crop (no autograd)."""
+        return self.dense(self.heights(), fill=fill).float()
+
+    def field(self, heights: torch.Tensor) -> HeightField:
+        """Dense heights (ny, nx) (or flat (ny*nx,)) on this grid and crop, as a height field."""
+        g = self.grid.spec
+        return HeightField(g.x0, g.y0, g.res, heights.reshape(g.ny, g.nx), self.valid_t)
+
+
+@torch.no_grad()
+def to_road_mesh(model: RoadMeshModel, class_ids: list[int], has_semantics: bool) -> RoadMesh:
+    """Densify the trained model into a RoadMesh (CPU tensors)."""
+    g = model.grid.spec
+    heights = model.dense(model.heights(), fill=0.0).float().cpu()
+    rgb = model.dense(model.rgb.clamp(0, 1)).float().cpu()
+    sem = model.dense(model.sem).float().cpu()
+    surf = HeightField(g.x0, g.y0, g.res, heights, torch.from_numpy(model.grid.valid.copy()))
+    return RoadMesh(surf, rgb, sem, list(class_ids), has_semantics)
 
 
 @dataclass
@@ -225,6 +202,6 @@ class RoadMesh:
         return is_road[self.sem_logits.argmax(dim=-1).cpu()].to(valid.device) & valid
 
     @property
-    def grid(self) -> dict:
-        s = self.surface
-        return {"x0": s.x0, "y0": s.y0, "res": s.res, "shape": [s.ny, s.nx]}
+    def grid(self) -> GridSpec:
+        """The vertex grid (``to_dict()`` is what ``grid.json`` and ``metrics.json`` record)."""
+        return self.surface.grid

@@ -1,8 +1,9 @@
-"""Stage-1 files: mesh.ply, BEV rasters (PNG + .npy), curves, metrics.json, mesh.npz and the checkpoint.
+"""Stage-1 files: mesh.ply, BEV rasters (PNG + .npy), curves, metrics.json and mesh.npz
+(the checkpoint: :mod:`pavemap.mesh.checkpoint`).
 
 Array convention: ``.npy`` rasters are in grid order (row = y index, as ``HeightField``); PNGs are
-flipped so that +y (north when the world is ENU) is up, for people. ``grid.json`` holds
-``{"x0", "y0", "res", "shape": [ny, nx]}``.
+flipped so that +y (north when the world is ENU) is up, for people. ``grid.json`` holds the grid's
+:meth:`pavemap.geometry.GridSpec.to_dict`.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from PIL import Image
 from pavemap.errors import PavemapError
 from pavemap.geometry import HeightField
 from pavemap.io.atomic import atomic_path, atomic_write_bytes, atomic_write_json
-from pavemap.mesh.model import Grid, RoadMesh
+from pavemap.mesh.model import RoadMesh
 from pavemap.palette import colour_labels
 from pavemap.types import SemanticClass
 
@@ -157,7 +158,7 @@ def write_outputs(out: Path, mesh: RoadMesh, metrics: dict, classes: list[Semant
     for name in ("rgb", "semantic", "height", "valid"):
         _save_npy(out / f"bev_{name}.npy", r[name])
         paths[f"bev_{name}.npy"] = out / f"bev_{name}.npy"
-    atomic_write_json(out / "grid.json", mesh.grid)
+    atomic_write_json(out / "grid.json", mesh.grid.to_dict())
     if metrics.get("history"):
         _curves_png(out / "curves.png", metrics["history"])
         paths["curves.png"] = out / "curves.png"
@@ -175,33 +176,3 @@ def _json_safe(o):
     if isinstance(o, float | np.floating) and not np.isfinite(o):
         return None
     return o
-
-
-def save_checkpoint(path: Path, model, opt, delta, epoch: int, history: list[dict], gen: torch.Generator,
-                    grid: Grid, cfg, seconds: float) -> None:
-    state = {
-        "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "opt": opt.state_dict(), "delta": None if delta is None else delta.detach().cpu(), "epoch": epoch,
-        "history": history, "gen": gen.get_state(), "config": cfg.to_dict(), "seconds": seconds,
-        "grid": {"x0": grid.x0, "y0": grid.y0, "res": grid.res, "nx": grid.nx, "ny": grid.ny,
-                 "valid_sum": grid.vertices},
-    }
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
-
-
-def load_checkpoint(path: Path, grid: Grid, num_classes: int, num_views: int, device: torch.device) -> dict | None:
-    """The checkpoint's state when it belongs to this grid / class table / view set, else None."""
-    try:
-        state = torch.load(path, map_location=device, weights_only=False)
-    except Exception:  # noqa: BLE001 - a corrupt checkpoint is just not resumable
-        return None
-    g = state.get("grid", {})
-    same = (abs(g.get("x0", 1e18) - grid.x0) < 1e-9 and abs(g.get("y0", 1e18) - grid.y0) < 1e-9
-            and g.get("nx") == grid.nx and g.get("ny") == grid.ny and g.get("valid_sum") == grid.vertices)
-    sem = state["model"].get("sem")
-    if not same or sem is None or sem.shape[1] != num_classes:
-        return None
-    if state.get("delta") is not None and state["delta"].shape[0] != num_views:
-        return None
-    return state

@@ -2,7 +2,7 @@
 
 Why not only Adam (SPEC's joint refinement): a training step samples pixels from all views at once, so
 each view's pose gradient comes from a few dozen pixels; Adam then moves every pose by ~lr per step in a
-noisy direction and the refinement stalled near its start (0.200 -> 0.191 m on the test scene). Here each
+noisy direction and the refinement stalls near its start (README: pose refinement). Here each
 view is aligned on thousands of its own pixels by damped Gauss-Newton (direct image alignment, as in
 photometric visual odometry): residuals are the pixel colour minus the baked texture where its ray meets
 the surface, and, where LiDAR depth exists, the rendered minus the measured depth in height units. The
@@ -16,10 +16,12 @@ residual channel ``c`` w.r.t. the copies is exactly the per-pixel Jacobian row o
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
-from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, surface_bounds
+from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, pixel_rays, surface_bounds
+from pavemap.geometry.heightfield import SurfaceBounds
 from pavemap.mesh.bake import _gaussian_blur, bake_colours
 from pavemap.mesh.data import PixelPool, ViewKey
 
@@ -113,8 +115,8 @@ def remove_common_motion(delta: torch.Tensor, centres: torch.Tensor, length: flo
     """Corrections (V, 6) minus the rigid motion of the whole rig that fits them best (least squares).
 
     Why: the texture and the surface are built from the same views, so moving every camera together by one
-    rigid motion changes no residual (a gauge freedom), and the alignment may drift along it (0.2 m errors
-    grew to 0.21 m on one seed). Raw poses are right on average (GNSS / odometry), so the refined rig keeps
+    rigid motion changes no residual (a gauge freedom), and the alignment may drift along it (errors
+    grew on some seeds). Raw poses are right on average (GNSS / odometry), so the refined rig keeps
     their mean position and heading and only the views' errors relative to each other are corrected.
     A small rigid motion (omega, tau) about the centroid moves view v by w = omega, t = tau + omega x p_v;
     ``length`` (m) weighs rotation against translation. centres: (V, 3) raw camera centres.
@@ -140,9 +142,8 @@ def _sample_per_view(view: torch.Tensor, n_views: int, per_view: int, generator:
     return order[rank < per_view]
 
 
-def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float, res: float, pool: PixelPool,
-                delta: torch.Tensor, max_dist: float, iters: int = 8, per_view: int = 1000,
-                prior_sigma: tuple[float, float] = (0.3, 0.2), n_eff: float = 20.0,
+def align_poses(surface: HeightField, pool: PixelPool, delta: torch.Tensor, max_dist: float, iters: int = 8,
+                per_view: int = 1000, prior_sigma: tuple[float, float] = (0.3, 0.2), n_eff: float = 20.0,
                 rgb_sigma: float = 0.05, depth_sigma: float = 0.03, depth_gate: float = 0.25,
                 blur_cells: tuple[float, ...] = (4.0, 4.0, 2.0, 2.0, 1.0), fill_sigma: float = 1.0,
                 gauge_length: float = 10.0, texture: torch.Tensor | None = None, bake_pixels: int = 300_000,
@@ -151,22 +152,22 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
     """Refine per-view corrections ``delta`` (V, 6) on a fixed surface; returns the new corrections and the
     weighted residual cost per iteration (mean per residual, before each step).
 
-    heights/valid (ny, nx): the surface (float32 dense, bool crop) at origin x0, y0 and spacing res.
-    Each iteration bakes the texture on the current poses, blurred by ``blur_cells[it]`` cells (the last
-    value repeats): coarse to fine, since the sharp 0.1 m texture is linear only within a texel and 0.2 m
-    errors are two texels; aligning to it sharp made the errors grow. Then one Gauss-Newton step per view on
-    Huber-weighted residuals: colour (``rgb_sigma``) and, where measured, depth as a height (``depth_sigma``
-    m; residuals over ``depth_gate`` m are not ground and dropped).
+    surface: float32 dense heights (ny, nx) and bool crop. Each iteration bakes the texture on the current
+    poses, blurred by ``blur_cells[it]`` cells (the last value repeats): coarse to fine, since the sharp
+    0.1 m texture is linear only within a texel and 0.2 m errors are two texels; aligning to it sharp made
+    the errors grow. Then one Gauss-Newton step per view on Huber-weighted residuals (:func:`_residuals`):
+    colour (``rgb_sigma``) and, where measured, depth as a height (``depth_sigma`` m; residuals over
+    ``depth_gate`` m are not ground and dropped).
 
     The MAP step has a Gaussian prior of ``prior_sigma`` (degrees, metres) on the correction, the accuracy
     of the raw poses, and the data of one view counts as ``n_eff`` independent residuals whatever the number
     of pixels: pixel residuals are model errors (texture below the grid's resolution), strongly correlated,
     and at face value thousands of them overruled any prior, so the views drifted together along modes the
-    images barely see (0.2 -> 0.4 m on the KITTI-like drive with the true surface; 0.087 m with this weighting).
-    ``texture`` (ny, nx, 3): align to this fixed texture instead of baking. With ``group``/``arm`` (see
-    :func:`rig_groups`) ``delta`` is (G, 6), one rigid correction per frame (:func:`rig_corrections`).
+    images barely see. ``texture`` (ny, nx, 3): align to this fixed texture instead of baking. With
+    ``group``/``arm`` (see :func:`rig_groups`) ``delta`` is (G, 6), one rigid correction per frame
+    (:func:`rig_corrections`).
     """
-    dev = heights.device
+    dev = surface.heights.device
     V = len(pool.keys)
     G = delta.shape[0]
     if group is None or arm is None:
@@ -175,13 +176,8 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
     centres = torch.zeros(G, 3, dtype=torch.float64, device=dev).index_add_(
         0, group, (pool.T[:, :3, 3] - arm).double()) / per_group_views.clamp_min(1)[:, None]
     gen = torch.Generator().manual_seed(seed)
-    rows = _sample_per_view(pool.view, V, per_view, gen)
-    view, uv = pool.view[rows], pool.uv[rows]
-    gt = pool.rgb[rows].float() / 255.0
-    dm = pool.depth[rows] if pool.depth is not None else None
-    hf = HeightField(x0, y0, res, heights, valid)
-    bounds = surface_bounds(hf, pool.uv.dtype)
-    Kinv = pool.Kinv[view]
+    px = _Pixels.sample(pool, per_view, gen)
+    bounds = surface_bounds(surface, pool.uv.dtype)
     prior_w = torch.tensor([math.radians(prior_sigma[0]) ** -2] * 3 + [prior_sigma[1] ** -2] * 3,
                            dtype=torch.float64, device=dev)
     # The texture is baked from a random subset of at most ``bake_pixels`` pixels: a full bake per iteration
@@ -191,52 +187,128 @@ def align_poses(heights: torch.Tensor, valid: torch.Tensor, x0: float, y0: float
     delta = delta.detach().clone()
     costs: list[float] = []
     for it in range(iters):
-        if texture is not None:
-            tex, coloured = texture, valid
-        else:
-            tex, _, coloured = bake_colours(heights, valid, x0, y0, res, bake_pool,
-                                            corrected_poses(pool.T, rig_corrections(delta, group, arm)), max_dist,
-                                            fill_sigma)
         sigma = blur_cells[min(it, len(blur_cells) - 1)] if blur_cells else 0.0
-        if sigma > 0:
-            w = coloured.float()
-            tex = (_gaussian_blur((tex * w[..., None]).permute(2, 0, 1), sigma)
-                   / _gaussian_blur(w[None], sigma).clamp_min(1e-6)).permute(1, 2, 0)
-        tex = tex.reshape(-1, 3)
-        d_pix = delta[group[view]].clone().requires_grad_(True)  # each pixel's own copy of its group's correction
-        Tp = corrected_poses(pool.T[view], rig_corrections(d_pix, torch.arange(view.numel(), device=dev), arm[view]))
-        o = Tp[:, :3, 3]
-        d = torch.einsum("nij,nj->ni", Tp[:, :3, :3] @ Kinv, torch.cat([uv, torch.ones_like(uv[:, :1])], 1))
-        cells = find_hits(hf, o, d, max_dist, bounds=bounds)
-        if cells.idx.numel() == 0:
+        T = None if texture is not None else corrected_poses(pool.T, rig_corrections(delta, group, arm))
+        tex = _texture(surface, bake_pool, T, max_dist, fill_sigma, sigma, texture)
+        d_pix = delta[group[px.view]].clone().requires_grad_(True)  # each pixel's own copy of its group's correction
+        out = _residuals(surface, bounds, px, tex, d_pix, arm[px.view], max_dist, rgb_sigma, depth_sigma, depth_gate)
+        if out is None:
             break
-        hit = hits_to_rayhit(hf, o, d, cells)
-        hr = cells.idx
-        col = (hit.bary[hr][..., None] * tex[cells.vertex_ids(hf.nx)]).sum(1)
-        res_list = [(col - gt[hr]) / rgb_sigma]
-        if dm is not None:
-            dz = d[hr, 2].detach().abs()
-            r_d = (hit.lam[hr] - dm[hr]) * dz
-            has = (dm[hr] > 0) & (r_d.detach().abs() < depth_gate)
-            res_list.append((torch.where(has, r_d, torch.zeros_like(r_d)) / depth_sigma)[:, None])
-        r = torch.cat(res_list, 1)  # (M, C) whitened residuals
-        J = torch.stack([torch.autograd.grad(r[:, c].sum(), d_pix, retain_graph=c < r.shape[1] - 1)[0][hr]
-                         for c in range(r.shape[1])], 1)  # (M, C, 6)
-        r = r.detach()
+        r, J, hr = out
         huber = torch.clamp(2.0 / r.abs().clamp_min(1e-9), max=1.0)  # Huber weights at 2 sigma
         costs.append(float((huber * r * r).sum() / max(1, r.numel())))
-        vw = group[view[hr]]
-        n_res = torch.bincount(vw, minlength=G).double() * r.shape[1]
-        scale = (n_eff * per_group_views / n_res.clamp_min(1.0))[:, None]
-        H = torch.zeros(G, 6, 6, dtype=torch.float64, device=dev)
-        g = torch.zeros(G, 6, dtype=torch.float64, device=dev)
-        Jw = (J * huber[..., None]).double()
-        H.index_add_(0, vw, torch.einsum("mci,mcj->mij", Jw, J.double()))
-        g.index_add_(0, vw, torch.einsum("mci,mc->mi", Jw, r.double()))
-        H = H * scale[..., None] + torch.diag_embed(prior_w.expand(G, 6))
-        g = g * scale + prior_w * delta.double()
-        step = -torch.linalg.solve(H, g.unsqueeze(-1)).squeeze(-1)
+        step = _map_step(J, r, huber, group[px.view[hr]], delta, n_eff * per_group_views, prior_w)
         delta = delta + step.to(delta.dtype)
         if gauge_length > 0:
             delta = remove_common_motion(delta, centres.to(delta.dtype), gauge_length)
     return delta, costs
+
+
+@dataclass
+class _Pixels:
+    """The pixels an alignment uses: view (N,) long, uv (N, 2), K (N, 3, 3) and raw pose T (N, 4, 4) of
+    their views, colour gt (N, 3) in [0, 1], measured depth (N,) (0 unknown) or None."""
+
+    view: torch.Tensor
+    uv: torch.Tensor
+    K: torch.Tensor
+    T: torch.Tensor
+    gt: torch.Tensor
+    depth: torch.Tensor | None
+
+    @classmethod
+    def sample(cls, pool: PixelPool, per_view: int, generator: torch.Generator) -> _Pixels:
+        rows = _sample_per_view(pool.view, len(pool.keys), per_view, generator)
+        view = pool.view[rows]
+        return cls(view, pool.uv[rows], pool.K[view], pool.T[view], pool.rgb[rows].float() / 255.0,
+                   pool.depth[rows] if pool.depth is not None else None)
+
+
+def _texture(surface: HeightField, pool: PixelPool, T: torch.Tensor | None, max_dist: float, fill_sigma: float,
+             sigma: float, texture: torch.Tensor | None) -> torch.Tensor:
+    """(ny*nx, 3) texture to align to: ``texture`` or the one baked from ``pool`` on poses T, blurred by
+    ``sigma`` cells (normalised over the coloured vertices)."""
+    if texture is not None:
+        tex, coloured = texture, surface.valid
+    else:
+        tex, _, coloured = bake_colours(surface, pool, T, max_dist, fill_sigma)
+    if sigma > 0:
+        w = coloured.float()
+        tex = (_gaussian_blur((tex * w[..., None]).permute(2, 0, 1), sigma)
+               / _gaussian_blur(w[None], sigma).clamp_min(1e-6)).permute(1, 2, 0)
+    return tex.reshape(-1, 3)
+
+
+def _residuals(surface: HeightField, bounds: SurfaceBounds, px: _Pixels, tex: torch.Tensor, d_pix: torch.Tensor,
+               arm: torch.Tensor, max_dist: float, rgb_sigma: float, depth_sigma: float, depth_gate: float
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """Whitened residuals r (M, C) of the pixels whose rays hit the surface, their Jacobians J (M, C, 6)
+    w.r.t. the pixels' own corrections ``d_pix`` (N, 6) and the hit rows (M,); None when nothing hits.
+    arm: (N, 3) each pixel's camera centre minus its rig's centre."""
+    rows = torch.arange(px.view.numel(), device=d_pix.device)
+    o, d = pixel_rays(px.K, corrected_poses(px.T, rig_corrections(d_pix, rows, arm)), px.uv)
+    cells = find_hits(surface, o, d, max_dist, bounds=bounds)
+    if cells.idx.numel() == 0:
+        return None
+    hit = hits_to_rayhit(surface, o, d, cells)
+    hr = cells.idx
+    col = (hit.bary[hr][..., None] * tex[cells.vertex_ids(surface.nx)]).sum(1)
+    res_list = [(col - px.gt[hr]) / rgb_sigma]
+    if px.depth is not None:
+        dm = px.depth[hr]
+        r_d = (hit.lam[hr] - dm) * d[hr, 2].detach().abs()
+        has = (dm > 0) & (r_d.detach().abs() < depth_gate)
+        res_list.append((torch.where(has, r_d, torch.zeros_like(r_d)) / depth_sigma)[:, None])
+    r = torch.cat(res_list, 1)
+    J = torch.stack([torch.autograd.grad(r[:, c].sum(), d_pix, retain_graph=c < r.shape[1] - 1)[0][hr]
+                     for c in range(r.shape[1])], 1)
+    return r.detach(), J, hr
+
+
+def _map_step(J: torch.Tensor, r: torch.Tensor, huber: torch.Tensor, vw: torch.Tensor, delta: torch.Tensor,
+              n_eff_views: torch.Tensor, prior_w: torch.Tensor) -> torch.Tensor:
+    """(G, 6) damped Gauss-Newton (MAP) step of every group from residuals r (M, C), Jacobians J (M, C, 6),
+    Huber weights (M, C) and each residual's group vw (M,). A group's data count as ``n_eff_views`` (G,)
+    residuals; prior_w (6,) the prior's inverse variances around 0."""
+    G = delta.shape[0]
+    dev = delta.device
+    n_res = torch.bincount(vw, minlength=G).double() * r.shape[1]
+    scale = (n_eff_views / n_res.clamp_min(1.0))[:, None]
+    H = torch.zeros(G, 6, 6, dtype=torch.float64, device=dev)
+    g = torch.zeros(G, 6, dtype=torch.float64, device=dev)
+    Jw = (J * huber[..., None]).double()
+    H.index_add_(0, vw, torch.einsum("mci,mcj->mij", Jw, J.double()))
+    g.index_add_(0, vw, torch.einsum("mci,mc->mi", Jw, r.double()))
+    H = H * scale[..., None] + torch.diag_embed(prior_w.expand(G, 6))
+    g = g * scale + prior_w * delta.double()
+    return -torch.linalg.solve(H, g.unsqueeze(-1)).squeeze(-1)
+
+
+class PoseCorrections:
+    """The learnable pose corrections of the training views (pose refinement, SPEC §1).
+
+    One rigid correction per group (a frame's rig with ``pose_per: frame``, else a view; see
+    :func:`rig_groups`): rotation ``w`` (G, 3) rad and translation ``t`` (G, 3) m as separate parameters in
+    their own Adam groups, because Adam moves each by ~lr per step whatever the gradient's scale, and
+    1 mrad at the ~5-20 m where the ground is seen shifts the image as much as 5-20 mm of translation
+    (see MeshConfig.lr_pose_rot). group: (V,) long; arm: (V, 3).
+    """
+
+    def __init__(self, group: torch.Tensor, arm: torch.Tensor, n_groups: int, device: torch.device):
+        self.group, self.arm = group, arm
+        self.w = torch.nn.Parameter(torch.zeros(n_groups, 3, device=device))
+        self.t = torch.nn.Parameter(torch.zeros(n_groups, 3, device=device))
+
+    def delta(self) -> torch.Tensor:
+        """(G, 6) detached per-group corrections (rotation vector, translation)."""
+        return torch.cat([self.w, self.t], 1).detach()
+
+    def set(self, delta: torch.Tensor) -> None:
+        """Overwrite the corrections with ``delta`` (G, 6)."""
+        self.w.data.copy_(delta[:, :3].to(self.w.device))
+        self.t.data.copy_(delta[:, 3:].to(self.t.device))
+
+    def view_delta(self, detach: bool = True) -> torch.Tensor:
+        """(V, 6) corrections of the training views (from the per-frame ones with ``pose_per: frame``)."""
+        d = rig_corrections(torch.cat([self.w, self.t], 1), self.group, self.arm)
+        return d.detach() if detach else d

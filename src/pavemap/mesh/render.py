@@ -10,23 +10,19 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pavemap.geometry import HeightField, intersect_rays, pixel_grid
-from pavemap.geometry.camera import as_tensor
+from pavemap.geometry import HeightField, intersect_rays, pixel_grid, pixel_rays
 from pavemap.mesh.model import RoadMesh
 from pavemap.types import Camera
 
 
-def view_rays(Kinv: torch.Tensor, T: torch.Tensor, view: torch.Tensor, uv: torch.Tensor
+def view_rays(K: torch.Tensor, T: torch.Tensor, view: torch.Tensor, uv: torch.Tensor
               ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays of pixels from many views at once.
+    """Rays of pixels from many views at once (:func:`pavemap.geometry.pixel_rays`, batched).
 
-    Kinv (V, 3, 3), T (V, 4, 4) camera-to-world, view (N,) long, uv (N, 2) -> origins, dirs (N, 3) with
+    K (V, 3, 3), T (V, 4, 4) camera-to-world, view (N,) long, uv (N, 2) -> origins, dirs (N, 3) with
     ``d = R K^-1 [u, v, 1]`` (lam = camera depth). Differentiable w.r.t. T (pose refinement).
     """
-    pix = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=1)
-    M = T[:, :3, :3] @ Kinv  # (V, 3, 3): one matrix per view, then a gather
-    dirs = torch.einsum("nij,nj->ni", M[view], pix)
-    return T[view, :3, 3], dirs
+    return pixel_rays(K[view], T[view], uv)
 
 
 def shade(hit, rgb: torch.Tensor, sem: torch.Tensor | None) -> dict:
@@ -50,10 +46,7 @@ def render_view(mesh: RoadMesh, camera: Camera, T_world_cam: np.ndarray | torch.
     surf = mesh.surface
     dev = surf.heights.device
     px = pixel_grid(cam.width, cam.height, device=dev, dtype=torch.float32)
-    K = torch.as_tensor(np.asarray(cam.K, dtype=np.float64), dtype=torch.float32, device=dev)
-    T = as_tensor(T_world_cam, px)
-    Kinv = torch.linalg.inv(K.double()).float()
-    o, d = view_rays(Kinv[None], T[None], torch.zeros(px.shape[0], dtype=torch.long, device=dev), px)
+    o, d = pixel_rays(np.asarray(cam.K, dtype=np.float64), T_world_cam, px)
     hit = intersect_rays(HeightField(surf.x0, surf.y0, surf.res, surf.heights.float(), surf.valid),
                          o, d, max_dist=max_dist)
     C = mesh.sem_logits.shape[-1]

@@ -24,7 +24,7 @@ class UltralyticsSegmenter:
 
     def __init__(self, weights: str | os.PathLike, class_map: str | os.PathLike | LabelMap = "mapillary-vistas",
                  imgsz: int = 640, device: str = "auto"):
-        from pavemap.detect.yolo import _check_weights_path, _import_ultralytics, resolve_device
+        from pavemap.detect.yolo import _check_weights_path, _import_ultralytics, ultralytics_device_of
 
         p = _check_weights_path(weights)
         _import_ultralytics()
@@ -60,7 +60,7 @@ class UltralyticsSegmenter:
             log.info("segmenter classes mapped to 'other': %s", ", ".join(map(str, unknown)))
         self.lut = lut
         self.imgsz = imgsz
-        self.device = resolve_device(device)
+        self.device = ultralytics_device_of(device)
 
     def segment(self, images: list[np.ndarray]) -> list[np.ndarray]:
         """(H, W, 3) uint8 RGB each → (H, W) uint8 label-table ids each, at the original resolution."""

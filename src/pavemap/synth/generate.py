@@ -2,7 +2,7 @@
 
 Layout written (on top of SPEC §6):
   truth/defects.geojson      ground-truth defect polygons (world metres) with id, cls, name, sizes
-  truth/height.npy/.json     the exact surface raster (0.05 m; sample (j, i) at x_min + i*res, y_min + j*res)
+  truth/height.npy/.json     the exact surface raster (0.05 m; sample (j, i) at x0 + i*res, y0 + j*res)
   truth/world.json           parameters and seed (same params + seed → byte-identical folder)
   truth/instances/<camera>/<frame>.png   uint16 code map per view (see world.json instance_encoding)
 """
@@ -16,14 +16,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image
 
+from pavemap.device import resolve_device
 from pavemap.errors import PavemapError
-from pavemap.io.atomic import atomic_write_json, atomic_write_text
+from pavemap.geometry.camera import pixel_grid, pixel_rays
+from pavemap.geometry.grid import GridSpec
+from pavemap.io.atomic import atomic_write_json
 from pavemap.io.sequence import read_sequence, save_depth, write_sequence
-from pavemap.synth.render import render_view, resolve_device
+from pavemap.io.truth import read_truth_grid, write_truth_height
+from pavemap.synth.defects import blob_polygon
+from pavemap.synth.params import CLASSES, torch_threads
+from pavemap.synth.render import render_view
 from pavemap.synth.rig import DEFAULT_SCALE, RIGS, camera_pose, rig_cameras, vehicle_poses
-from pavemap.synth.world import CLASSES, World, blob_polygon, make_world, torch_threads
+from pavemap.synth.world import World, make_world
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, Frame, GeoOrigin, SemanticClass, Sequence, View
 
 DEPTH_MODES = ("none", "sparse", "dense")
@@ -152,8 +159,10 @@ def lidar_rings(K: np.ndarray, R_veh_cam: np.ndarray, H: int, W: int, beams: int
 
     Constant per camera mount, so computed once: ((H, W) bool, (H, W) float32 |K⁻¹[u, v, 1]|).
     """
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ R_veh_cam.T
+    T_veh_cam = np.eye(4)
+    T_veh_cam[:3, :3] = R_veh_cam
+    _, d = pixel_rays(K, T_veh_cam, pixel_grid(W, H, dtype=torch.float64))
+    rays = d.numpy().reshape(H, W, 3)
     elev = np.degrees(np.arctan2(rays[..., 2], np.hypot(rays[..., 0], rays[..., 1])))
     ring = np.linspace(-30.67, 10.67, beams)
     k = np.clip(np.round((elev - ring[0]) / (ring[1] - ring[0])), 0, beams - 1).astype(int)
@@ -190,13 +199,14 @@ def defect_polygon(d: dict):
 def _write_truth(world: World, root: Path) -> None:
     truth = root / "truth"
     truth.mkdir(parents=True, exist_ok=True)
-    feats = []
+    polys, props_all = [], []
     for d in world.defects:
         poly = defect_polygon(d)
         code = DEFECT_CODES[d["cls"]]
-        props = {"id": d["id"], "cls": d["cls"], "name": code, "type": DEFECT_NAMES[code],
-                 "centre": [round(float(v), 4) for v in d["centre"]], "area_m2": round(float(poly.area), 4),
-                 "length_m": round(float(d["length_m"]), 4)}
+        # the defect schema of every pavemap GeoJSON (pavemap.export.geojson.PROPERTY_SCHEMA)
+        props = {"id": d["id"], "cls": d["cls"], "code": code, "name": DEFECT_NAMES[code],
+                 "area_m2": round(float(poly.area), 4), "length_m": round(float(d["length_m"]), 4),
+                 "x_m": round(float(d["centre"][0]), 4), "y_m": round(float(d["centre"][1]), 4)}
         if d["kind"] == "line":
             props["width_m"] = round(float(d["width_m"]), 4)
             props["band_m"] = d["band_m"]
@@ -206,55 +216,41 @@ def _write_truth(world: World, root: Path) -> None:
             props["grown_in_survey"] = int(world.params.survey)
         if d.get("new_in_survey"):
             props["new_in_survey"] = int(d["new_in_survey"])
-        ring = [[round(float(x), 4), round(float(y), 4)] for x, y in np.asarray(poly.exterior.coords)]
-        feats.append({"type": "Feature", "properties": props, "geometry": {"type": "Polygon", "coordinates": [ring]}})
-    fc = {"type": "FeatureCollection", "name": "defects_truth",
-          "crs_note": "local world metres (x east-ish, y north-ish); see sequence.json geo_origin", "features": feats}
-    atomic_write_text(truth / "defects.geojson", json.dumps(fc) + "\n")
-    np.save(truth / "height.npy", world.height.astype(np.float32))
-    hg = world.height_grid.to_json()
-    hg["sample_at"] = "height[j, i] is the surface at (x_min + i*resolution, y_min + j*resolution)"
-    hg["interpolation"] = "bilinear"
-    atomic_write_json(truth / "height.json", hg)
+        polys.append(poly)
+        props_all.append(props)
+    from pavemap.export.geojson import features_to_geojson
+
+    # local world metres (stated in the file): the truth is compared in the world frame
+    atomic_write_json(truth / "defects.geojson", features_to_geojson(polys, props_all), indent=None)
+    write_truth_height(root, world.height, world.height_grid, extra={
+        "sample_at": "height[j, i] is the surface at (x0 + i*res, y0 + j*res)", "interpolation": "bilinear"})
     atomic_write_json(truth / "world.json", world.to_json())
 
 
 def load_truth_defects(seq_root: str | os.PathLike) -> list[TruthDefect]:
     """Read ``truth/defects.geojson`` of a synthetic sequence as shapely polygons with id and cls."""
-    from shapely.geometry import shape
-
+    from pavemap.export.geojson import read_geojson
     from pavemap.io.sequence import SequenceError
 
     path = Path(seq_root) / "truth" / "defects.geojson"
     if not path.is_file():
         raise SequenceError(path, "not found; ground truth exists only for synthetic sequences (pavemap synth)")
     try:
-        fc = json.loads(path.read_text(encoding="utf-8"))
+        layer = read_geojson(path)
         out = []
-        for i, f in enumerate(fc["features"]):
-            pr = f["properties"]
+        for i, (geom, pr) in enumerate(zip(layer.geometries, layer.properties, strict=True)):
             cls = int(pr["cls"])
             if not 0 <= cls < len(DEFECT_CODES):
                 raise ValueError(f"feature {i}: cls {cls} outside 0..3")
-            out.append(TruthDefect(int(pr["id"]), cls, shape(f["geometry"]), dict(pr)))
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as e:
+            out.append(TruthDefect(int(pr["id"]), cls, geom, dict(pr)))
+    except (PavemapError, KeyError, TypeError, ValueError) as e:
         raise SequenceError(path, f"not a defects FeatureCollection ({e})") from None
     return out
 
 
-def load_truth_height(seq_root: str | os.PathLike) -> tuple[np.ndarray, dict]:
-    """(ny, nx) float32 true surface and its grid dict from ``truth/height.npy`` / ``height.json``."""
-    from pavemap.io.sequence import SequenceError
-
-    root = Path(seq_root) / "truth"
-    try:
-        grid = json.loads((root / "height.json").read_text(encoding="utf-8"))
-        h = np.load(root / "height.npy")
-    except (OSError, ValueError) as e:
-        raise SequenceError(root / "height.npy", f"cannot read true height ({e})") from None
-    if list(h.shape) != list(grid["shape"]):
-        raise SequenceError(root / "height.json", f"shape {grid['shape']} does not match height.npy {list(h.shape)}")
-    return h, grid
+def load_truth_height(seq_root: str | os.PathLike) -> tuple[np.ndarray, GridSpec]:
+    """(ny, nx) float32 true surface and its grid, from ``truth/height.npy`` / ``height.json``."""
+    return read_truth_grid(seq_root)
 
 
 def load_world(seq_root: str | os.PathLike) -> World:

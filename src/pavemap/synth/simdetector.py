@@ -1,4 +1,4 @@
-"""Simulated defect detector for synthetic sequences (``pavemap detect --backend sim``).
+"""Simulated defect detector for synthetic sequences (``pavemap detect --detector sim``).
 
 True detections come from the ground truth actually visible in each view (the per-view
 instance maps written by ``pavemap synth``: unoccluded defect pixels), with configurable
@@ -23,7 +23,7 @@ from PIL import Image
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_write_text
 from pavemap.io.sequence import DETECTIONS_FILE, load_semantics, write_detections
-from pavemap.synth.world import DECOY_ID_OFFSET
+from pavemap.synth.params import DECOY_ID_OFFSET
 from pavemap.types import Detection, Sequence
 
 SHADOW_BIT = 1 << 14
@@ -268,5 +268,5 @@ def read_detection_truth(seq_root: str | Path) -> list[dict]:
     """The side file of the last simulated detection run, one dict per detection line."""
     path = Path(seq_root) / TRUTH_FILE
     if not path.is_file():
-        raise PavemapError(f"{path}: missing; run `pavemap detect SEQ --backend sim` first")
+        raise PavemapError(f"{path}: missing; run `pavemap detect SEQ --detector sim` first")
     return [json.loads(x) for x in path.read_text(encoding="utf-8").splitlines() if x.strip()]

@@ -1,0 +1,104 @@
+"""Stage 2 settings: which detector runs (``DetectorConfig``) and which detections go on (``FilterConfig``).
+
+Both are sections of :class:`pavemap.config.RunConfig` (``detector:`` and ``filter:``); their field
+types are the schema the config loader checks YAML and ``--set`` overrides against.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from pavemap.errors import PavemapError
+
+Backend = Literal["auto", "sim", "yolo", "file"]
+MaskSource = Literal["frame", "mesh", "both"]
+BACKENDS: tuple[str, ...] = ("auto", "sim", "yolo", "file")
+MASKS: tuple[str, ...] = ("frame", "mesh", "both")
+
+
+@dataclass
+class DetectorConfig:
+    """The detection backend of ``pavemap run``.
+
+    - ``backend``: ``auto`` (``sim`` where the sequence has synthetic truth ``truth/defects.geojson``,
+      else ``yolo`` with the shipped weights), ``sim`` (simulated detector, synthetic sequences only),
+      ``yolo`` (ultralytics weights), ``file`` (a detections JSONL or a folder of YOLO txt files).
+    - ``weights``: yolo weights (.pt); None = the shipped ``models/pavemap-yolov8n-rdd2022-cn.pt``.
+    - ``file``: file backend input; None = ``SEQ/detections.jsonl``.
+    - ``seed``: sim random seed. ``imgsz`` / ``conf`` / ``batch`` / ``class_map``: yolo inference
+      (``conf`` keeps nearly everything: the filter's ``tau_conf`` decides later).
+    """
+
+    backend: Backend = "auto"
+    weights: str | None = None
+    file: str | None = None
+    seed: int = 0
+    imgsz: int = 640
+    conf: float = 0.01
+    batch: int = 8
+    class_map: str | None = None
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise PavemapError naming the first bad field."""
+        if self.backend not in BACKENDS:
+            raise PavemapError(f"detector.backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
+        if self.imgsz < 32:
+            raise PavemapError(f"detector.imgsz must be >= 32, got {self.imgsz}")
+        if self.batch < 1:
+            raise PavemapError(f"detector.batch must be >= 1, got {self.batch}")
+        if not (math.isfinite(self.conf) and 0.0 <= self.conf < 1.0):
+            raise PavemapError(f"detector.conf must be in [0, 1), got {self.conf}")
+        if self.seed < 0:
+            raise PavemapError(f"detector.seed must be >= 0, got {self.seed}")
+
+
+@dataclass
+class FilterConfig:
+    """The road filter of stage 2 (SPEC §2).
+
+    - ``tau_conf``: keep detections with ``conf >= tau_conf`` (paper 0.05 nuScenes / 0.10 KITTI).
+    - ``tau_road``: keep detections whose box road share ``R_road > tau_road`` (paper 0.5).
+    - ``mask``: road mask for ``R_road``: ``frame`` (the view's semantic PNG), ``mesh`` (the road
+      mesh's semantics seen through the box), ``both`` (both ratios must pass).
+    - ``mesh_mask_grid``: rays per box side when the mesh mask is sampled from the mesh surface.
+    - ``mesh_mask_scale``: render scale when the mesh mask comes from a rendered view instead.
+    """
+
+    tau_conf: float = 0.05
+    tau_road: float = 0.5
+    mask: MaskSource = "frame"
+    mesh_mask_scale: float = 0.25
+    mesh_mask_grid: int = 8
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise PavemapError naming the first bad field."""
+        if self.mask not in MASKS:
+            raise PavemapError(f"filter.mask must be one of {', '.join(MASKS)}, got {self.mask!r}")
+        if not 0.0 <= self.tau_conf <= 1.0:
+            raise PavemapError(f"filter.tau_conf must be in [0, 1], got {self.tau_conf}")
+        if not 0.0 <= self.tau_road < 1.0:
+            raise PavemapError(f"filter.tau_road must be in [0, 1), got {self.tau_road}")
+        if not (math.isfinite(self.mesh_mask_scale) and 0.0 < self.mesh_mask_scale <= 1.0):
+            raise PavemapError(f"filter.mesh_mask_scale must be in (0, 1], got {self.mesh_mask_scale}")
+        if self.mesh_mask_grid < 1:
+            raise PavemapError(f"filter.mesh_mask_grid must be >= 1, got {self.mesh_mask_grid}")
+
+    @classmethod
+    def preset(cls, name: str) -> FilterConfig:
+        """Paper Table 2: τ_conf 0.05 for nuscenes, 0.10 for kitti (τ_road 0.5 for both)."""
+        if name == "nuscenes":
+            return cls(tau_conf=0.05)
+        if name == "kitti":
+            return cls(tau_conf=0.10)
+        raise PavemapError(f"unknown filter preset {name!r}; choose nuscenes or kitti")
+
+
+__all__ = ["BACKENDS", "MASKS", "Backend", "DetectorConfig", "FilterConfig", "MaskSource"]

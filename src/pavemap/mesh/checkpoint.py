@@ -1,0 +1,78 @@
+"""Stage-1 checkpoint: ``OUT/checkpoint.pt`` after every epoch, and resuming from it.
+
+A checkpoint resumes only the run it belongs to: same grid and crop, same class table, same number of
+pose groups; anything else starts afresh (with a warning from the caller).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from pavemap.io.atomic import atomic_path
+from pavemap.mesh.config import MeshConfig
+from pavemap.mesh.model import MeshGrid, RoadMeshModel
+from pavemap.mesh.step import MultiOptimizer
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class Resumed:
+    """What a resumed run continues from: epochs done, per-epoch history, seconds already spent."""
+
+    epoch: int
+    history: list[dict]
+    seconds: float
+
+
+def save_checkpoint(path: Path, model: RoadMeshModel, opt: MultiOptimizer, delta: torch.Tensor | None, epoch: int,
+                    history: list[dict], gen: torch.Generator, cfg: MeshConfig, seconds: float) -> None:
+    """Write the model, optimizer, pose corrections ``delta`` (G, 6), sampling generator and history."""
+    grid = model.grid
+    state = {
+        "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "opt": opt.state_dict(), "delta": None if delta is None else delta.detach().cpu(), "epoch": epoch,
+        "history": history, "gen": gen.get_state(), "config": cfg.to_dict(), "seconds": seconds,
+        "grid": {**grid.spec.to_dict(), "valid_sum": grid.vertices},
+    }
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(path: Path, grid: MeshGrid, num_classes: int, num_groups: int, device: torch.device
+                    ) -> dict | None:
+    """The checkpoint's state when it belongs to this grid / class table / pose groups, else None."""
+    try:
+        state = torch.load(path, map_location=device, weights_only=False)
+    except Exception:  # noqa: BLE001 - a corrupt checkpoint is just not resumable
+        return None
+    g, spec = state.get("grid", {}), grid.spec
+    same = (abs(g.get("x0", 1e18) - spec.x0) < 1e-9 and abs(g.get("y0", 1e18) - spec.y0) < 1e-9
+            and g.get("nx") == spec.nx and g.get("ny") == spec.ny and g.get("valid_sum") == grid.vertices)
+    sem = state["model"].get("sem")
+    if not same or sem is None or sem.shape[1] != num_classes:
+        return None
+    if state.get("delta") is not None and state["delta"].shape[0] != num_groups:
+        return None
+    return state
+
+
+def resume(out_dir: Path, model: RoadMeshModel, opt: MultiOptimizer, gen: torch.Generator, num_groups: int,
+           device: torch.device) -> tuple[Resumed, torch.Tensor | None] | None:
+    """Load ``out_dir/checkpoint.pt`` into the model, optimizer and generator when it matches this run.
+
+    Returns where to continue and the saved pose corrections (G, 6) (None without pose refinement), or
+    None when there is no matching checkpoint (nothing is changed then).
+    """
+    path = Path(out_dir) / CHECKPOINT
+    state = load_checkpoint(path, model.grid, model.sem.shape[1], num_groups, device)
+    if state is None:
+        return None
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["opt"])
+    gen.set_state(state["gen"])
+    done = Resumed(int(state["epoch"]), state["history"], float(state.get("seconds", 0.0)))
+    return done, state.get("delta")

@@ -1,0 +1,125 @@
+"""Stage-1 evaluation: PSNR and semantic accuracy of rendered pixels, height error against a true surface."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import torch
+
+from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, surface_bounds
+from pavemap.io.truth import has_truth_height, read_truth_height
+from pavemap.mesh.data import PixelPool
+from pavemap.mesh.model import RoadMesh, RoadMeshModel
+from pavemap.mesh.pose import corrected_poses
+from pavemap.mesh.render import view_rays
+from pavemap.mesh.setup import TrainData
+from pavemap.mesh.step import Fit
+
+
+def psnr(mse: float) -> float:
+    """PSNR (dB) of a mean squared error of colours in [0, 1]."""
+    return float(10 * math.log10(1.0 / max(mse, 1e-10)))
+
+
+@torch.no_grad()
+def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, max_dist: float,
+                  delta: torch.Tensor | None = None, max_pixels: int | None = None, batch: int = 131072,
+                  generator: torch.Generator | None = None) -> dict[str, float]:
+    """Render the pool's pixels (a random ``max_pixels`` of them when given) on dense ``heights`` (ny, nx)
+    from the pool's poses corrected by ``delta`` (V, 6). Returns psnr over road pixels the mesh covers,
+    sem_acc over labelled hit pixels, coverage (hit fraction) and road_pixels."""
+    n = len(pool)
+    idx = torch.arange(n, device=pool.view.device)
+    if max_pixels is not None and n > max_pixels:
+        idx = torch.randperm(n, generator=generator)[:max_pixels].to(pool.view.device)
+    hf = model.field(heights)
+    bounds = surface_bounds(hf, pool.uv.dtype)
+    T = corrected_poses(pool.T, delta)
+    se = torch.zeros((), dtype=torch.float64, device=heights.device)
+    n_road = n_sem = n_ok = n_hit = 0
+    for s in range(0, idx.numel(), batch):
+        b = idx[s:s + batch]
+        o, d = view_rays(pool.K, T, pool.view[b], pool.uv[b])
+        hit = hits_to_rayhit(hf, o, d, find_hits(hf, o, d, max_dist, bounds=bounds))
+        hv = hit.hit
+        n_hit += int(hv.sum())
+        cid = model.flat_to_compact[hit.vertex_ids[hv]]
+        bary = hit.bary[hv]
+        rgb = (bary[..., None] * model.rgb[cid]).sum(1).clamp(0, 1)
+        gt = pool.rgb[b][hv].float() / 255.0
+        road = pool.road[b][hv]
+        se += ((rgb - gt) ** 2).mean(1)[road].double().sum()
+        n_road += int(road.sum())
+        ch = pool.channel[b][hv]
+        lab = ch >= 0
+        if lab.any() and model.sem.shape[1]:
+            pred = (bary[lab][..., None] * model.sem[cid[lab]]).sum(1).argmax(1)
+            n_ok += int((pred == ch[lab]).sum())
+            n_sem += int(lab.sum())
+    return {
+        "psnr": psnr(float(se) / n_road) if n_road else float("nan"),
+        "sem_acc": n_ok / n_sem if n_sem else float("nan"),
+        "coverage": n_hit / max(1, idx.numel()),
+        "road_pixels": n_road,
+    }
+
+
+def height_rmse(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.Tensor,
+                truth: HeightField) -> tuple[float, int]:
+    """RMSE (m) of mesh heights vs the truth raster over kept vertices inside the truth grid, and their count."""
+    xy = grid_xy[valid].double().cpu()
+    t = HeightField(truth.x0, truth.y0, truth.res, truth.heights.double(), truth.valid)
+    z, inside = t.height_at(xy)
+    h = mesh_heights[valid].double().cpu()
+    if not inside.any():
+        return float("nan"), 0
+    err = (h[inside] - z[inside])
+    return float(torch.sqrt((err ** 2).mean())), int(inside.sum())
+
+
+def truth_metrics(mesh: RoadMesh, truth: HeightField, seen: torch.Tensor | None) -> dict[str, float | int]:
+    """Height RMSE of the mesh against the true surface over all kept vertices, and, with ``seen`` (ny, nx)
+    bool, over the vertices some training pixel reaches."""
+    s = mesh.surface
+    rmse, n = height_rmse(s.heights, s.valid, s.grid_xy(), truth)
+    out: dict[str, float | int] = {"height_rmse": rmse, "height_rmse_vertices": n}
+    if seen is not None:
+        # A forward camera never sees the crop behind the first frame: its heights are a guess, so the
+        # error over the vertices a training pixel does reach is reported too.
+        rmse_s, n_s = height_rmse(s.heights, s.valid & seen, s.grid_xy(), truth)
+        out.update(height_rmse_seen=rmse_s, height_rmse_seen_vertices=n_s)
+    return out
+
+
+def stage_metrics(fit: Fit, data: TrainData, mesh: RoadMesh, fill: float, eval_delta: torch.Tensor | None,
+                  seen: torch.Tensor | None, seq_root: str | os.PathLike | None) -> dict:
+    """The final evaluation of a run: held-out psnr / sem_acc / coverage on all evaluation pixels, the fit to
+    the training views (on their refined poses), the grid, the refined poses, and the height error where
+    the sequence has a true surface. ``seen``: (Nv,) bool vertices a training pixel reaches, or None."""
+    model, pool, cfg = fit.model, fit.pool, fit.cfg
+    heights = model.dense_heights(fill)
+    t_ev = time.perf_counter()
+    ev = evaluate_pool(model, data.epool, heights, cfg.max_dist, delta=eval_delta)
+    ev_s = time.perf_counter() - t_ev
+    # The fit to the training views (on their refined poses): with pose refinement the held-out views keep
+    # their raw poses (plus interpolated corrections), so this is where aligned poses show.
+    view_delta = None if fit.poses is None else fit.poses.view_delta()
+    ev_train = evaluate_pool(model, pool, heights, cfg.max_dist, view_delta, max_pixels=200000,
+                             generator=torch.Generator().manual_seed(cfg.seed + 3))
+    grid = data.grid
+    metrics: dict = {
+        "psnr": ev["psnr"], "sem_acc": ev["sem_acc"] if data.use_sem else None, "train_psnr": ev_train["psnr"],
+        "heldout": data.heldout, "heldout_views": len(data.epool.keys), "train_views": len(pool.keys),
+        "coverage": ev["coverage"], "vertices": grid.vertices, "faces": grid.faces, "grid": grid.spec.to_dict(),
+        "eval_pixels_per_second": len(data.epool) / max(ev_s, 1e-9),
+    }
+    if view_delta is not None:
+        with torch.no_grad():
+            Tr = corrected_poses(pool.T, view_delta).double().cpu().numpy()
+        metrics["refined_poses"] = {f"{k.frame}/{k.camera}": Tr[i].tolist() for i, k in enumerate(pool.keys)}
+    if has_truth_height(seq_root):
+        seen_grid = None if seen is None else model.dense(seen, fill=False).cpu()
+        metrics.update(truth_metrics(mesh, read_truth_height(seq_root), seen_grid))
+    return metrics

@@ -1,0 +1,106 @@
+"""From a sequence to what stage 1 trains on: the frame split, the pixel pools, the grid and its crop."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pavemap.errors import PavemapError
+from pavemap.geometry import find_hits
+from pavemap.mesh.config import MeshConfig
+from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
+from pavemap.mesh.model import MeshGrid, RoadMeshModel, build_grid
+from pavemap.mesh.render import view_rays
+from pavemap.types import SemanticClass, Sequence
+
+Warn = Callable[[str], None]
+
+
+@dataclass
+class TrainData:
+    """The inputs of a stage-1 run.
+
+    pool: the training pixels; epool: the evaluation pixels (the held-out views, or the training views
+    when none is held out); grid: the vertex grid and its crop around ``traj`` (F, 3), the mean camera
+    centre of every frame used; classes: the semantic classes trained (empty without semantic maps).
+    """
+
+    pool: PixelPool
+    epool: PixelPool
+    grid: MeshGrid
+    traj: np.ndarray
+    classes: list[SemanticClass]
+    use_sem: bool
+    use_depth: bool
+    heldout: bool
+
+    @property
+    def class_ids(self) -> list[int]:
+        return [c.id for c in self.classes]
+
+
+def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) -> TrainData:
+    """Split the frames, drop views without a finite pose, build the grid and load the pixel pools."""
+    if not seq.frames:
+        raise PavemapError(f"sequence {seq.name!r} has no frames")
+    train_pos, held_pos = split_frames(len(seq.frames), cfg.holdout_every, cfg.frame_stride)
+    if cfg.holdout_every > 0 and not held_pos:
+        warn("fewer than 2 frames: no frame held out; metrics are measured on the training views")
+    train_views, dropped = finite_views(seq, train_pos)
+    held_views, dropped_h = finite_views(seq, held_pos)
+    if dropped + dropped_h:
+        warn(f"{dropped + dropped_h} view(s) with a NaN/infinite pose skipped")
+    if not train_views:
+        raise PavemapError(f"sequence {seq.name!r}: no training view with a finite pose")
+    use_sem = any(v.semantics for _, v in train_views)
+    if not use_sem:
+        warn("no semantic maps in the sequence: RGB-only reconstruction, road mask = mesh footprint")
+    use_depth = any(v.depth for _, v in train_views)
+    classes = list(seq.classes) if use_sem else []
+    channel_lut = np.full(256, -1, dtype=np.int64)
+    for ch, c in enumerate(classes):
+        channel_lut[c.id] = ch
+
+    # Grid from the trajectory of the views used.
+    centres: dict[int, list[np.ndarray]] = {}
+    for fi, v in train_views + held_views:
+        centres.setdefault(fi, []).append(v.T_world_cam[:3, 3])
+    traj = np.array([np.mean(centres[k], axis=0) for k in sorted(centres)])
+    grid = build_grid(traj[:, :2], cfg.resolution, cfg.crop_m)
+    if grid.vertices < 3 or grid.faces == 0:
+        raise PavemapError("the trajectory crop holds no triangle; check crop_m and resolution")
+
+    pool = build_pool(seq, train_views, cfg.render_scale, channel_lut, use_sem, use_depth).to(device)
+    eval_views = held_views if held_views else train_views
+    epool = build_pool(seq, eval_views, cfg.eval_scale, channel_lut, use_sem, use_depth).to(device)
+    if use_sem and int((epool.channel >= 0).sum()) == 0:
+        warn("held-out views carry no labelled pixels: semantic accuracy is undefined")
+    return TrainData(pool, epool, grid, traj, classes, use_sem, use_depth, bool(held_views))
+
+
+@torch.no_grad()
+def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist: float, seq_name: str,
+                   warn: Warn, batch: int = 262144) -> PixelPool:
+    """The pool without the pixels whose rays cannot meet the initial mesh (sky, far off the crop): they
+    would fill batches with misses. Warns about views that see none of it; an error when no pixel is left."""
+    hf0 = model.field(model.dense_heights(fill))
+    keep = torch.zeros(len(pool), dtype=torch.bool, device=pool.view.device)
+    for s in range(0, len(pool), batch):
+        o, d = view_rays(pool.K, pool.T, pool.view[s:s + batch], pool.uv[s:s + batch])
+        keep[s + find_hits(hf0, o, d, max_dist).idx] = True
+    seen = torch.bincount(pool.view[keep], minlength=len(pool.keys))
+    blind = int((seen == 0).sum())
+    if blind:
+        # Usually not an error: a forward camera's nearest visible ground lies several metres ahead
+        # (~7 m for KITTI's), so in the last frames it looks past the crop around the trajectory's end.
+        names = [f"{pool.keys[i].frame}/{pool.keys[i].camera}" for i in (seen == 0).nonzero().squeeze(1).tolist()]
+        warn(f"{blind} training view(s) see no part of the road mesh and are unused ({', '.join(names[:6])}"
+             f"{', ...' if blind > 6 else ''}): pointing at the sky, or looking past the crop around the "
+             "trajectory's ends")
+    pool = pool.subset(keep)
+    if len(pool) == 0:
+        raise PavemapError(f"sequence {seq_name!r}: no training view sees the road area around the trajectory")
+    return pool
