@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 
 from pavemap.detect.config import DetectorConfig, FilterConfig
+from pavemap.device import CHOICES as DEVICE_CHOICES
+from pavemap.device import is_device_name
 from pavemap.errors import PavemapError
 
 if TYPE_CHECKING:  # the stage configs import torch through their packages: loaded on first use
@@ -107,8 +109,8 @@ class RunConfig:
         """Range-check every section; raise PavemapError naming ``section.field``."""
         if self.preset not in PRESETS:
             raise PavemapError(f"preset must be one of {', '.join(PRESETS)}, got {self.preset!r}")
-        if not self.device.strip():
-            raise PavemapError("device must be auto, cpu, cuda or cuda:N, got ''")
+        if not is_device_name(self.device):
+            raise PavemapError(f"device must be {DEVICE_CHOICES}, got {self.device!r}")
         for section in SECTIONS:
             getattr(self, section).validate()
 

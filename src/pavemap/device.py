@@ -8,27 +8,47 @@ a run that asked for CUDA and ran on the CPU would report timings that mean some
 
 from __future__ import annotations
 
-import torch
+from typing import TYPE_CHECKING
 
 from pavemap.errors import PavemapError
+
+if TYPE_CHECKING:
+    import torch
 
 CHOICES = "auto, cpu, cuda or cuda:N"
 
 
+def _canonical(name: str) -> str | None:
+    """``cpu`` / ``cuda:N`` / ``auto`` for a name this module accepts, else None."""
+    n = name.strip().lower()
+    if n in ("auto", "cpu"):
+        return n
+    if n in ("cuda", "gpu"):
+        return "cuda:0"
+    if n.isdigit():
+        return f"cuda:{n}"
+    if n.startswith("cuda:") and n[5:].isdigit():
+        return n
+    return None
+
+
+def is_device_name(name: str) -> bool:
+    """Whether ``name`` is spelled like a device (config validation; says nothing about what exists)."""
+    return isinstance(name, str) and _canonical(name) is not None
+
+
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
     """``auto`` / ``cpu`` / ``cuda`` / ``cuda:N`` / ``N`` → a torch device that exists on this machine."""
+    import torch  # lazily: config validation uses this module without loading torch
+
     if isinstance(device, torch.device):
         device = str(device)
-    name = (device or "auto").strip().lower()
+    name = _canonical(device or "auto")
     if name == "auto":
         return torch.device("cuda:0" if torch.cuda.is_available() else "cpu")
     if name == "cpu":
         return torch.device("cpu")
-    if name in ("cuda", "gpu"):
-        name = "cuda:0"
-    if name.isdigit():
-        name = f"cuda:{name}"
-    if name.startswith("cuda:") and name[5:].isdigit():
+    if name is not None:
         if not torch.cuda.is_available():
             raise PavemapError(f"device {device!r}: this torch sees no CUDA GPU; use --device cpu or auto")
         idx = int(name[5:])

@@ -10,6 +10,8 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+from pavemap.device import CHOICES as DEVICE_CHOICES
+from pavemap.device import is_device_name
 from pavemap.errors import PavemapError
 
 AssociationMode = Literal["ray", "hit", "footprint"]
@@ -91,8 +93,8 @@ class FusionConfig:
         for name in ("n_min", "footprint_grid", "min_instance_obs"):
             if getattr(self, name) < 1:
                 raise PavemapError(f"fusion.{name} must be >= 1, got {getattr(self, name)}")
-        if not self.device:
-            raise PavemapError("fusion.device must be auto or a device name (cpu, cuda, cuda:N)")
+        if not is_device_name(self.device):
+            raise PavemapError(f"fusion.device must be {DEVICE_CHOICES}, got {self.device!r}")
 
     @classmethod
     def preset(cls, name: str) -> FusionConfig:

@@ -11,6 +11,8 @@ import typing
 from dataclasses import asdict, dataclass, fields
 from typing import Literal
 
+from pavemap.device import CHOICES as DEVICE_CHOICES
+from pavemap.device import is_device_name
 from pavemap.errors import PavemapError
 
 PRESETS = ("nuscenes", "kitti")
@@ -137,12 +139,7 @@ class MeshConfig:
         _require(self, "threads", lambda v: v is None or v >= 0, "must be >= 0 (0 or null: torch's setting)")
         _require(self, "pose_per", lambda v: v in typing.get_args(PosePer),
                  f"must be one of {', '.join(typing.get_args(PosePer))}")
-        _require(self, "device", _device_name, "must be auto, cpu, cuda or cuda:N")
-
-
-def _device_name(name: str) -> bool:
-    n = name.strip().lower()
-    return n in ("auto", "cpu", "cuda", "gpu") or n.isdigit() or (n.startswith("cuda:") and n[5:].isdigit())
+        _require(self, "device", is_device_name, f"must be {DEVICE_CHOICES}")
 
 
 def _require(cfg: MeshConfig, name: str, ok: typing.Callable[[object], bool], what: str) -> None:
