@@ -1,0 +1,145 @@
+"""Ground points triangulated from images with fixed poses, the camera height they give, the surface check."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+
+from pavemap.geometry.grid import GridSpec
+from pavemap.geometry.triangulate import check_residuals, sample_grid, triangulate_tracks
+from pavemap.io.sequence import read_sequence
+from pavemap.mesh.ground_points import (
+    GroundConfig,
+    check_surface,
+    depth_image,
+    estimate_camera_height,
+    find_ground_points,
+)
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """A small no-depth front-camera drive (12 frames at 10 Hz, half resolution) and its truth."""
+    from pavemap.synth import synthesize
+
+    root = tmp_path_factory.mktemp("ground") / "kitti"
+    synthesize(root, "kitti-like", seed=5, frames=12, scale=0.5, depth="none", progress=False)
+    seq = read_sequence(root)
+    grid = GridSpec.from_dict(json.loads((root / "truth" / "height.json").read_text()))
+    heights = np.load(root / "truth" / "height.npy").astype(np.float64)
+    return seq, grid, heights
+
+
+@pytest.fixture(scope="module")
+def points(drive):
+    return find_ground_points(drive[0])
+
+
+def _true_height(seq, grid, heights) -> float:
+    C = np.array([f.views["CAM_FRONT"].T_world_cam[:3, 3] for f in seq.frames])
+    return float(np.median(C[:, 2] - sample_grid(grid, heights, C[:, :2])))
+
+
+def test_ground_points_match_the_truth(drive, points):
+    seq, grid, heights = drive
+    assert points.observable and len(points) >= 200
+    err = points.points[:, 2] - sample_grid(grid, heights, points.points[:, :2])
+    assert abs(np.nanmedian(err)) <= 0.015
+    assert points.obs_depth.min() > 0 and (points.n_views >= 2).all()
+    # observations feed a depth layer: the depth at an observation's pixel is that observation's depth
+    cam = seq.cameras["CAM_FRONT"]
+    dep = depth_image(points, int(points.obs_view[0]), cam.width, cam.height)
+    u, v = np.rint(points.obs_uv[0]).astype(int)
+    assert dep[v, u] > 0 and (dep > 0).sum() >= 20
+
+
+@pytest.mark.parametrize("prior", [1.5, 2.0])
+def test_camera_height_within_2cm_whatever_the_prior(drive, points, prior):
+    seq, grid, heights = drive
+    gp = points if prior == 1.5 else find_ground_points(seq, GroundConfig(prior_height=prior))
+    est = estimate_camera_height(seq, gp)["CAM_FRONT"]
+    assert est.observable
+    assert abs(est.median - _true_height(seq, grid, heights)) <= 0.02
+    assert est.spread < 0.05
+
+
+def test_surface_check_flags_a_shifted_surface(drive, points):
+    _, grid, heights = drive
+    good = check_surface(points, grid, heights)
+    assert not good.flagged and abs(good.median) < 0.01
+    bad = check_surface(points, grid, heights, offset=0.3)
+    assert bad.flagged and "off" in bad.reason and bad.median == pytest.approx(-0.3, abs=0.02)
+
+
+def test_a_single_frame_is_not_observable(drive):
+    seq = copy.copy(drive[0])
+    seq.frames = seq.frames[:1]
+    gp = find_ground_points(seq)
+    assert not gp.observable and len(gp) == 0 and "not observable" in gp.reason
+    est = estimate_camera_height(seq, gp)["CAM_FRONT"]
+    assert not est.observable and np.isnan(est.median)
+    assert check_surface(gp, drive[1], drive[2]).flagged
+
+
+def test_a_stationary_vehicle_is_not_observable(drive):
+    seq = copy.deepcopy(drive[0])
+    T0 = seq.frames[0].views["CAM_FRONT"].T_world_cam
+    for f in seq.frames[:4]:
+        f.views["CAM_FRONT"].T_world_cam = T0.copy()
+    seq.frames = seq.frames[:4]
+    gp = find_ground_points(seq)
+    assert not gp.observable
+
+
+def test_uniform_grey_road_is_not_observable(drive, tmp_path):
+    from PIL import Image
+
+    seq = copy.deepcopy(drive[0])
+    seq.frames, seq.root = seq.frames[:4], tmp_path
+    cam = seq.cameras["CAM_FRONT"]
+    for f in seq.frames:
+        v = f.views["CAM_FRONT"]
+        (tmp_path / v.image).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.full((cam.height, cam.width, 3), 128, np.uint8)).save(tmp_path / v.image)
+        v.semantics = None
+    gp = find_ground_points(seq)
+    assert not gp.observable and "texture" in gp.reason
+
+
+def test_triangulation_rejects_mismatches_and_low_parallax():
+    rng = np.random.default_rng(0)
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    # two cameras 1 m apart looking along +x (OpenCV axes: x right = -y world, y down = -z world)
+    R = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
+    T = np.stack([np.eye(4)] * 3)
+    for k, x in enumerate((0.0, 1.0, 2.0)):
+        T[k, :3, :3], T[k, :3, 3] = R, (x, 0, 1.5)
+    X = np.c_[rng.uniform(6, 15, 50), rng.uniform(-3, 3, 50), np.zeros(50)]
+    X[:2] = (6.0, 2.0, 0.0)  # near, off to the side: parallax well above the 1 degree minimum
+    pc = np.einsum("vji,nvj->nvi", T[:, :3, :3], X[:, None] - T[None, :, :3, 3])
+    uv = (pc @ K.T)[..., :2] / pc[..., 2:3] + rng.normal(0, 0.05, (50, 3, 2))
+    uv[0, 2] += (0.0, 8.0)  # one bad observation: dropped, the track keeps its other two views
+    uv[1, 1:] += ((0.0, 8.0), (-6.0, -5.0))  # two bad of three: no two views agree
+    track = np.repeat(np.arange(50), 3)
+    Ks, Ts = np.tile(K, (150, 1, 1)), np.tile(T, (50, 1, 1))
+    tri = triangulate_tracks(Ks, Ts, uv.reshape(-1, 2), track, 50)
+    assert tri.ok[0] and tri.n_views[0] == 2 and not tri.used[2]
+    assert not tri.ok[1]
+    good = tri.ok.copy()
+    good[:2] = False
+    # forward motion: depth is the weak direction (0.05 px noise ~ 1 % at 15 m), height is not
+    assert np.abs(tri.points[good, 2] - X[good, 2]).max() < 0.02
+    assert (np.linalg.norm(tri.points[good] - X[good], axis=1) < 0.02 * X[good, 0]).all()
+    far = triangulate_tracks(Ks, Ts, uv.reshape(-1, 2), track, 50, min_angle_deg=30.0)
+    assert not far.ok.any()
+
+
+def test_check_residuals_thresholds():
+    r = np.random.default_rng(1).normal(0.0, 0.01, 500)
+    assert not check_residuals(r).flagged
+    assert check_residuals(r + 0.08).flagged
+    assert check_residuals(np.random.default_rng(2).normal(0.0, 0.3, 500)).flagged
+    assert check_residuals(r[:5]).flagged
