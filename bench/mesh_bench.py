@@ -1,10 +1,15 @@
 """Stage-1 benchmark: reconstruct the synthetic nuScenes-like (40 frames x 6 cameras) and KITTI-like drives.
 
-Writes ``bench/results/mesh.json`` (merging: a CPU run and a CUDA run each fill their own entry).
-Per preset: seconds per epoch, total seconds, peak RSS, held-out PSNR (road pixels), semantic
-accuracy, height RMSE vs truth, renderer throughput (full-view render_view pixels per second).
+Without depth by default (the monocular case: the geometry comes from ground points triangulated from the
+images); ``--depth sparse`` runs the same drive with its LiDAR-like sparse depth (the second column). Both
+read one synthesized drive: the no-depth copy is its sequence.json without the depth layer.
 
-    python bench/mesh_bench.py [--device cpu|cuda] [--data DIR] [--presets nuscenes-like,kitti-like]
+Writes ``bench/results/mesh.json`` (merging: each device and depth mode fills its own entry, e.g.
+``cpu`` / ``cpu-sparse``). Per preset: seconds per epoch, total seconds, peak RSS, held-out PSNR (road
+pixels), semantic accuracy, height RMSE / bias vs truth (all and observed vertices), camera height found vs
+true, the run's geometry self-check, renderer throughput (full-view render_view pixels per second).
+
+    python bench/mesh_bench.py [--device cpu|cuda] [--depth none|sparse] [--data DIR] [--presets ...]
 
 Imports only torch / numpy / PIL / scipy (plus trimesh when it is installed, for mesh.ply), so it
 runs on a bare GPU machine with ``PYTHONPATH=src``.
@@ -13,6 +18,7 @@ runs on a bare GPU machine with ``PYTHONPATH=src``.
 from __future__ import annotations
 
 import json
+import os
 import resource
 import sys
 import time
@@ -28,7 +34,9 @@ from pavemap.mesh import MeshConfig, reconstruct, render_view  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "mesh.json"
-TARGETS = {"psnr_db": 26.5, "sem_acc": 0.92, "height_rmse_m": 0.03, "nuscenes_total_s": 300}
+TARGETS = {"psnr_db": 26.5, "sem_acc": 0.92, "height_rmse_m": 0.03, "nuscenes_total_s": 300,
+           "no_depth": {"camera_height_abs_err_m": 0.02, "height_bias_observed_m": 0.01,
+                        "height_rmse_observed_m": 0.03, "time_vs_depth": 1.5}}
 PAPER = {"psnr_db": 26.43, "sem_acc": 0.9205, "time": "45-60 min per 40-frame scene on an RTX 4080"}
 
 # Bench settings per preset (ours: tuned for the 5-minute CPU budget; see README).
@@ -63,14 +71,68 @@ def renderer_throughput(mesh, seq, device: str, scale: float = 0.5, views: int =
     return px / (time.perf_counter() - t)
 
 
-def run_preset(preset: str, data: Path, device: str, out_root: Path | None, epochs: int | None) -> dict:
-    seq_dir = data / preset
-    if not (seq_dir / "sequence.json").is_file():
+def bench_drive(data: Path, preset: str, depth: str, device: str) -> Path:
+    """The drive's folder: synthesized with sparse depth once (``PRESET-sparse``); ``PRESET-none`` is the same
+    drive without its depth layer (sequence.json rewritten, images / labels / truth linked)."""
+    src = data / f"{preset}-sparse"
+    if not (src / "sequence.json").is_file():
         from pavemap.synth import synthesize
 
         t = time.perf_counter()
-        synthesize(seq_dir, preset, seed=0, device=device, progress=False)
+        synthesize(src, preset, seed=0, depth="sparse", device=device, progress=False)
         print(f"{preset}: synthesized in {time.perf_counter() - t:.0f} s", flush=True)
+    if depth == "sparse":
+        return src
+    dst = data / f"{preset}-none"
+    if not (dst / "sequence.json").is_file():
+        dst.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "semantics", "truth"):
+            if (src / sub).exists() and not (dst / sub).exists():
+                (dst / sub).symlink_to((src / sub).resolve())
+        d = json.loads((src / "sequence.json").read_text())
+        for f in d["frames"]:
+            for v in f["views"].values():
+                v["depth"] = None
+        (dst / "sequence.json").write_text(json.dumps(d))
+    return dst
+
+
+def truth_camera_height(seq) -> float | None:  # noqa: ANN001
+    """Mean camera centre of a frame above the true surface, median over frames (None without truth)."""
+    import numpy as np
+
+    from pavemap.io.truth import has_truth_height, read_truth_height
+
+    if not has_truth_height(seq.root):
+        return None
+    t = read_truth_height(seq.root)
+    c = np.array([np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], axis=0) for f in seq.frames])
+    z, inside = t.height_at(torch.from_numpy(c[:, :2]).double())
+    return float(np.median(c[inside.numpy(), 2] - z.numpy()[inside.numpy()])) if inside.any() else None
+
+
+def height_bias(out: Path | None, mesh, seq) -> dict:  # noqa: ANN001
+    """Mean signed height error (m) of the mesh vs the truth over all kept and over observed vertices."""
+    from pavemap.io.truth import has_truth_height, read_truth_height
+
+    if not has_truth_height(seq.root):
+        return {}
+    s, t = mesh.surface, read_truth_height(seq.root)
+    res = {}
+    for name, mask in (("all", s.valid), ("observed", s.valid & mesh.observed if mesh.observed is not None else None)):
+        if mask is None:
+            continue
+        xy = s.grid_xy()[mask].double().cpu()
+        z, inside = t.height_at(xy)
+        err = s.heights[mask].double().cpu()[inside] - z[inside]
+        res[f"height_bias_{name}_m"] = round(float(err.mean()), 4) if err.numel() else None
+        res[f"height_rmse_{name}_m"] = round(float((err ** 2).mean().sqrt()), 4) if err.numel() else None
+    return res
+
+
+def run_preset(preset: str, data: Path, device: str, out_root: Path | None, epochs: int | None,
+               depth: str = "none") -> dict:
+    seq_dir = bench_drive(data, preset, depth, device)
     seq = read_sequence(seq_dir)
     st = SETTINGS[preset]
     cfg = MeshConfig.preset(st["mesh_preset"])
@@ -81,7 +143,7 @@ def run_preset(preset: str, data: Path, device: str, out_root: Path | None, epoc
     cfg.threads = 1 if device == "cpu" else None  # one thread measured faster on the shared 2-core box
     if epochs is not None:
         cfg.epochs = epochs
-    out = None if out_root is None else out_root / f"mesh-{preset}-{device}"
+    out = None if out_root is None else out_root / f"mesh-{preset}-{device}-{depth}"
     t = time.perf_counter()
     mesh, m = reconstruct(seq, out, cfg, progress=True)
     total = time.perf_counter() - t
@@ -98,7 +160,9 @@ def run_preset(preset: str, data: Path, device: str, out_root: Path | None, epoc
         "peak_rss_mb": round(peak_rss_mb(), 0),
         "psnr_db": m["psnr"], "sem_acc": m["sem_acc"], "height_rmse_m": m.get("height_rmse"),
         "height_rmse_seen_m": m.get("height_rmse_seen"), "seen_vertices": m.get("height_rmse_seen_vertices"),
-        "renderer_pixels_per_s": round(pps, 0),
+        "renderer_pixels_per_s": round(pps, 0), "depth": depth,
+        "camera_height_true_m": truth_camera_height(seq), "camera_height_used_m": m["camera_height_init"],
+        **height_bias(out, mesh, seq), "geometry": m.get("geometry"),
         "history": [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in h.items()} for h in hist],
         "warnings": m["warnings"],
     }
@@ -112,15 +176,21 @@ def run_preset(preset: str, data: Path, device: str, out_root: Path | None, epoc
 def main() -> None:
     ap = bench_parser(__doc__, "nuscenes-like,kitti-like", RESULTS)
     ap.add_argument("--out", type=Path, default=None, help="where to write mesh outputs (default: none)")
+    ap.add_argument("--depth", choices=("none", "sparse"), default="none",
+                    help="none (default, the monocular case) or the drive's sparse depth")
     a = ap.parse_args()
     results = json.loads(a.results.read_text()) if a.results.is_file() else {}
     results.setdefault("targets", TARGETS)
     results.setdefault("paper", PAPER)
-    key = "cuda" if a.device.startswith("cuda") else "cpu"
-    entry = {**machine_entry(), "presets": {}}
+    key = ("cuda" if a.device.startswith("cuda") else "cpu") + ("-sparse" if a.depth == "sparse" else "")
+    entry = results.get(key) if isinstance(results.get(key), dict) and "presets" in results[key] else {}
+    entry = {**entry, **machine_entry(),  # rows of an older run without a depth mode are dropped, not mixed
+             "presets": {k: v for k, v in entry.get("presets", {}).items() if v.get("depth") == a.depth}}
     for preset in a.presets.split(","):
-        entry["presets"][preset] = run_preset(preset, a.data, a.device, a.out, a.epochs)
-    results[key] = entry
+        entry["presets"][preset] = run_preset(preset, a.data, a.device, a.out, a.epochs, a.depth)
+        entry["presets"][preset]["load_avg"] = os.getloadavg()
+        results[key] = entry
+        write_results(a.results, results)
     write_results(a.results, results)
 
 

@@ -214,7 +214,9 @@ def test_n_min_and_maps(plane: HeightField, tmp_path) -> None:  # noqa: ANN001
     assert res.prob_map[r, c] > 0.05 and res.class_maps[0, r, c] > 0.05 and res.class_maps[3, r, c] == 0
     assert res.prob_map[round((4.0 - g.y0) / g.res), c] == 0
     write_fusion_outputs(tmp_path, res)
-    for name in ("defects.geojson", "defect_map.npy", "defect_map_D40.npy", "metrics.json",
+    # no geo origin: no GeoJSON (WGS84 only), the layers go to survey.gpkg in a local CRS (issue 15)
+    assert not (tmp_path / "defects.geojson").exists()
+    for name in ("survey.gpkg", "defect_map.npy", "defect_map_D40.npy", "metrics.json",
                  "detections_mapped.jsonl"):
         assert (tmp_path / name).is_file()
     assert np.load(tmp_path / "defect_map.npy").shape == res.prob_map.shape

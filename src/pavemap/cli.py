@@ -3,11 +3,13 @@
 Each area registers its commands from ``pavemap.commands.<area>`` (a ``register(app)``
 function), so the CLI stays a thin layer over the stage functions. Shared options live in
 :mod:`pavemap.commands.options`. A user error (:class:`PavemapError`, :class:`SequenceError`, a
-missing file) ends the command with one ``error: ...`` line and exit status 2.
+missing file, a write that fails: read-only, disk full) ends the command with one ``error: ...`` line
+naming the file, and exit status 2.
 """
 
 from __future__ import annotations
 
+import errno
 import importlib
 import importlib.util
 import re
@@ -21,7 +23,26 @@ from typer.core import TyperGroup
 from pavemap import __version__
 from pavemap.errors import PavemapError, SequenceError
 
-USER_ERRORS = (SequenceError, PavemapError, FileNotFoundError, FileExistsError, PermissionError)
+USER_ERRORS = (SequenceError, PavemapError, OSError)  # what ends a command with one line, exit status 2
+#: How a failed read or write is worded, by errno (the rest: the system's own words).
+_OS_WORDS = {
+    errno.ENOSPC: "no space left on device",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.ENAMETOOLONG: "file name too long",
+    errno.EIO: "input/output error (a failing disk or a lost network mount?)",
+}
+
+
+def os_error_text(e: OSError) -> str:
+    """One line for a failed read or write: the path and what went wrong (``no space left on device``)."""
+    words = _OS_WORDS.get(e.errno or -1) or e.strerror or str(e)
+    path = e.filename if e.filename is not None else getattr(e, "filename2", None)
+    if e.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"{words} while writing {path}" if path else f"{words} (a write failed)"
+    return f"{path}: {words}" if path else words
 _PAIR = re.compile(r"[A-Za-z_]\w*\.[A-Za-z_]\w*=")
 
 
@@ -61,9 +82,21 @@ class _PavemapGroup(TyperGroup):
     def invoke(self, ctx: Any) -> Any:
         try:
             return super().invoke(ctx)
-        except USER_ERRORS as e:
-            typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
-            raise typer.Exit(2) from None
+        except (SequenceError, PavemapError) as e:
+            _fail(str(e))
+        except OSError as e:  # a missing file, a read-only folder, a full disk: the environment, not a bug
+            _fail(os_error_text(e))
+        except MemoryError:
+            _fail("out of memory; use smaller settings (e.g. mesh.render_scale, mesh.pixels_per_step, a coarser "
+                  "mesh.resolution) or a machine with more memory")
+        except KeyboardInterrupt:
+            typer.secho("interrupted; a rerun resumes where the run stopped", fg=typer.colors.RED, err=True)
+            raise typer.Exit(130) from None
+
+
+def _fail(message: str) -> None:
+    typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(2) from None
 
 
 app = typer.Typer(

@@ -22,7 +22,8 @@ import shapely
 
 from pavemap.errors import PavemapError
 from pavemap.export.geo import local_tangent, origin_to_dict
-from pavemap.export.geojson import DefectLayer, features_to_geojson, read_geojson
+from pavemap.export.geojson import DefectLayer, features_to_geojson
+from pavemap.export.gis import read_defect_layer
 from pavemap.io.atomic import atomic_write_json
 from pavemap.types import DEFECT_CODES
 
@@ -45,11 +46,15 @@ class _Defects:
 
 
 def _defects_geojson(run: Path) -> Path:
+    """A run folder's defects: ``defects.geojson`` (georeferenced) or ``survey.gpkg`` (local), or the file given."""
+    from pavemap.export.gis import run_defects_path
+
     run = Path(run)
     if run.is_dir():
-        p = run / "defects.geojson"
+        p, _ = run_defects_path(run, "defects")
         if not p.is_file():
-            raise PavemapError(f"{run}: no defects.geojson in this folder (is it a pavemap run output folder?)")
+            raise PavemapError(f"{run}: no defects.geojson or survey.gpkg in this folder "
+                               "(is it a pavemap run output folder?)")
         return p
     if run.is_file():
         return run
@@ -134,7 +139,7 @@ def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | 
     if not (np.isfinite(grow_ratio) and grow_ratio >= 1.0):
         raise PavemapError(f"grow_ratio must be >= 1, got {grow_ratio}")
     pa, pb = _defects_geojson(Path(run_a)), _defects_geojson(Path(run_b))
-    la, lb = read_geojson(pa), read_geojson(pb)
+    la, lb = read_defect_layer(pa), read_defect_layer(pb)
     warnings: list[str] = []
     to_common = None
     if la.geo_origin is not None and lb.geo_origin is not None:
@@ -209,7 +214,7 @@ def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | 
         _changes_figure(out_dir / "changes.png", A, B, records, counts)
         atomic_write_json(out_dir / "changes.json", summary)
     except PermissionError as e:
-        raise PavemapError(f"{out_dir}: cannot write the comparison ({e.strerror or e})") from None
+        raise PavemapError(f"{out_dir}: cannot write the comparison ({e.strerror or e}: {e.filename})") from None
     summary["paths"] = {k: str(out_dir / k) for k in ("changes.geojson", "changes.png", "changes.json")}
     return summary
 

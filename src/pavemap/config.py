@@ -59,12 +59,19 @@ class OutputConfig:
     - ``figures`` / ``report``: the PNG figures and ``report.html``.
     - ``overlay_frames``: frames drawn with their detections in the report (0: none).
     - ``sweep_tau_conf``: confidence thresholds of the report's precision/recall sweep, each in [0, 1].
+    - ``crs``: CRS of the GeoTIFF and the GIS layers of a georeferenced run: ``auto`` (the drive's UTM
+      zone) or a projected CRS such as ``EPSG:25832`` (``--crs``).
+    - ``extra_formats``: GIS files besides ``survey.gpkg``: ``fgb`` (FlatGeobuf), ``kml``, ``kmz``.
+    - ``vehicle``: free text for the ``survey`` layer (e.g. the vehicle's plate or fleet number).
     """
 
     figures: bool = True
     report: bool = True
     overlay_frames: int = 3
     sweep_tau_conf: tuple[float, ...] = (0.05, 0.10, 0.15, 0.20, 0.25, 0.35, 0.5)
+    crs: str = "auto"
+    extra_formats: tuple[Literal["fgb", "kml", "kmz"], ...] = ()
+    vehicle: str = ""
 
     def validate(self) -> None:
         """Raise PavemapError naming the first bad field."""
@@ -75,6 +82,9 @@ class OutputConfig:
         for t in self.sweep_tau_conf:
             if not (math.isfinite(t) and 0.0 <= t <= 1.0):
                 raise PavemapError(f"output.sweep_tau_conf values must be in [0, 1], got {t}")
+        from pavemap.geo.crs import check_crs_setting
+
+        check_crs_setting(self.crs, "output.crs")
 
 
 def _section_types() -> dict[str, type]:
@@ -162,6 +172,8 @@ def describe(hint: Any) -> str:
     if origin in (tuple, list):
         if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
             return f"a list of {len(args)} values"
+        if args and typing.get_origin(args[0]) is Literal:
+            return "a list of values, each " + describe(args[0])
         return "a list of " + {bool: "true/false values", int: "integers", float: "numbers",
                                str: "strings"}.get(args[0] if args else str, "values")
     return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(hint, str(hint))
@@ -401,6 +413,10 @@ def _load_yaml(path: Path, default_preset: str) -> RunConfig:
         data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as e:
         raise PavemapError(f"{path}: invalid YAML ({' '.join(str(e).split())})") from None
+    except UnicodeDecodeError as e:
+        raise PavemapError(f"{path}: is not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start})") from None
+    except RecursionError:
+        raise PavemapError(f"{path}: YAML nested too deeply") from None
     if not isinstance(data, dict):
         raise PavemapError(f"{path}: top level must be a mapping of sections")
     base = coerce(data.get("preset", default_preset), field_types(RunConfig)["preset"], "preset", str(path))

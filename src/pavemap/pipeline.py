@@ -3,20 +3,24 @@
 Stages 1 and 2a keep their results in the run folder (``mesh/``, ``detections.jsonl``) and leave
 a stamp ``.stages/<stage>.json`` holding the hash of their inputs and config; a rerun skips a
 stage whose stamp matches, so an interrupted run resumes where it stopped and a changed setting
-redoes only what depends on it. The filter, fusion and evaluation are cheap and return results
-in memory; :func:`pavemap.export.run_files.write_run` then writes every result file once.
-The pipeline itself writes only the folder's bookkeeping: ``run.json``, ``config.yaml``,
-``run.log`` and the stamps.
+redoes only what depends on it (:mod:`pavemap.run_folder`: the stamps, the hashes, why a stage is
+redone). The filter, fusion and evaluation are cheap and return results in memory;
+:func:`pavemap.export.run_files.write_run` then writes every result file once. The pipeline itself
+writes only the folder's bookkeeping: ``run.json``, ``config.yaml``, ``run.log``, the stamps and, at
+the end, the ownership marker ``.pavemap-owner.json`` listing every file pavemap wrote there (what
+``--overwrite`` may delete, :mod:`pavemap.io.owned`). A run that fails deletes the result files it
+wrote and keeps what a rerun resumes from.
 """
 
 from __future__ import annotations
 
-import hashlib
+import contextlib
+import dataclasses
 import json
 import logging
 import os
-import shutil
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -27,15 +31,26 @@ from pavemap.config import RunConfig, dump_config
 from pavemap.detect.config import DetectorConfig, FilterConfig
 from pavemap.errors import PavemapError
 from pavemap.geometry.grid import GridSpec
-from pavemap.io.atomic import atomic_write_json, atomic_write_text
-from pavemap.io.sequence import DETECTIONS_FILE, SEQUENCE_FILE, read_detections, read_sequence
+from pavemap.io.atomic import atomic_write_text
+from pavemap.io.sequence import DETECTIONS_FILE, read_detections, read_sequence
+from pavemap.run_folder import (
+    RUN_FILE,
+    STAGES,
+    Stages,
+    detect_parts,
+    hash_parts,
+    hash_sequence,
+    keep_on_failure,
+    mesh_parts,
+    prepare_out,
+    why_changed,
+)
 from pavemap.types import DefectInstance, Detection, GeoOrigin, Sequence
 
 if TYPE_CHECKING:  # torch loads when a stage runs, not on import
     from pavemap.fuse import FusionConfig, FusionResult
 
-RUN_FILE = "run.json"
-STAGES = ("mesh", "detect", "fuse", "evaluate", "export")
+__all__ = ["RUN_FILE", "STAGES", "RunResult", "filter_and_fuse", "run"]
 log = logging.getLogger("pavemap")
 
 
@@ -54,17 +69,21 @@ class RunResult:
     geo_origin: GeoOrigin | None = None
     preset: str = ""  # the preset the run started from, and why (when chosen from the rig)
     detector: str = ""  # the backend that ran, and why (``auto`` resolved)
+    warnings: list[str] = field(default_factory=list)  # the run's warnings (also in run.log)
 
     def to_geojson(self) -> dict:
-        """The defects as written to ``defects.geojson`` (lon/lat when the sequence has a geo origin)."""
-        from pavemap.export.geojson import instances_to_geojson
+        """The defects as written to ``defects.geojson``: WGS84 lon/lat (RFC 7946); PavemapError without a
+        geo origin (local metres would be read as degrees; use :meth:`to_dataframe` or ``survey.gpkg``)."""
+        from pavemap.export.frames import defects_geojson
 
-        return instances_to_geojson(self.defects, self.geo_origin)
+        return defects_geojson(self.defects, self.geo_origin)
 
-    def to_dataframe(self):  # noqa: ANN201 - pandas is optional
-        from pavemap.export.tables import to_dataframe
+    def to_dataframe(self, crs: str | None = None):  # noqa: ANN201 - geopandas / pandas are optional
+        """A geopandas GeoDataFrame of the defects when geopandas is installed (EPSG:4326 with a geo origin,
+        ``crs="auto"`` for the UTM zone; the local engineering CRS without one), else pandas, else dicts."""
+        from pavemap.export.frames import defects_frame
 
-        return to_dataframe(self.defects, self.geo_origin)
+        return defects_frame(self.defects, self.geo_origin, crs)
 
     def summary(self) -> str:
         by = {}
@@ -76,97 +95,8 @@ class RunResult:
             parts.append(f"F1 {e['f1']:.2f} (P {e['precision']:.2f}, R {e['recall']:.2f})")
             if e.get("median_error_m") is not None:
                 parts.append(f"median error {e['median_error_m']:.2f} m")
-        return ", ".join(parts)
-
-
-# ---------------------------------------------------------------------------- hashing
-
-
-def _hash_sequence(seq: Sequence) -> str:
-    h = hashlib.sha256()
-    assert seq.root is not None
-    h.update((seq.root / SEQUENCE_FILE).read_bytes())
-    for rel in ("truth/height.npy", "truth/defects.geojson"):
-        p = seq.root / rel
-        if p.is_file():
-            h.update(p.read_bytes())
-    # Image contents are not hashed (too slow for long drives); size + mtime catch edits.
-    for f in seq.frames:
-        for v in f.views.values():
-            for rel in (v.image, v.semantics, v.depth):
-                if rel:
-                    st = (seq.root / rel).stat()
-                    h.update(f"{rel}:{st.st_size}:{st.st_mtime_ns}".encode())
-    return h.hexdigest()[:16]
-
-
-def _hash(*parts: object) -> str:
-    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def _file_hash(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else "none"
-
-
-class _Stages:
-    def __init__(self, out: Path, force: bool = False):
-        self.dir = out / ".stages"
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.force = force
-
-    def done(self, name: str, key: str) -> bool:
-        p = self.dir / f"{name}.json"
-        if self.force or not p.is_file():
-            return False
-        try:
-            return json.loads(p.read_text())["key"] == key
-        except (json.JSONDecodeError, KeyError):
-            return False
-
-    def mark(self, name: str, key: str, seconds: float) -> None:
-        atomic_write_json(self.dir / f"{name}.json", {"key": key, "seconds": seconds, "finished": time.time()})
-
-    def seconds(self, name: str) -> float | None:
-        p = self.dir / f"{name}.json"
-        return json.loads(p.read_text()).get("seconds") if p.is_file() else None
-
-    def invalidate_after(self, name: str) -> None:
-        for later in STAGES[STAGES.index(name) + 1 :]:
-            (self.dir / f"{later}.json").unlink(missing_ok=True)
-
-
-def _prepare_out(out: Path, seq: Sequence, overwrite: bool) -> None:
-    """Refuse a folder that holds something else; claim it with run.json."""
-    if out.exists() and not out.is_dir():
-        raise PavemapError(f"{out}: exists and is not a folder")
-    marker = out / RUN_FILE
-    if out.is_dir() and any(out.iterdir()):
-        same = False
-        if marker.is_file():
-            try:
-                prev = json.loads(marker.read_text())
-            except json.JSONDecodeError:
-                prev = {}
-            same = prev.get("sequence") == str(seq.root.resolve()) if seq.root else False
-            if not same and not overwrite:
-                raise PavemapError(
-                    f"{out}: holds another run (of {prev.get('sequence', '?')}); "
-                    "choose another --out or pass --overwrite"
-                )
-        elif not overwrite:
-            raise PavemapError(
-                f"{out}: folder is not empty and holds no pavemap run; choose another --out or pass --overwrite"
-            )
-        if overwrite and not same:
-            shutil.rmtree(out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        raise PavemapError(f"{out}: cannot write the run folder ({e.strerror or e})") from None
-    atomic_write_json(marker, {"format": "pavemap-run/1", "sequence": str(seq.root.resolve()), "name": seq.name})
+        geometry = self.metrics.get("geometry") or {}
+        return ", ".join(parts) + "".join(f"\nwarning: {w}" for w in geometry.get("warnings") or [])
 
 
 def _setup_log(out: Path) -> logging.Handler:
@@ -184,9 +114,10 @@ def _detect(seq: Sequence, d: DetectorConfig, device: str, out: Path) -> Path:
     """Stage 2a with a resolved backend (:func:`pavemap.detect.backends.resolve_backend`) -> detections.jsonl."""
     det_path = out / DETECTIONS_FILE
     if d.backend == "sim":
+        from pavemap.synth.simdetector import SimDetectorConfig
         from pavemap.synth.simdetector import detect_sequence as sim_detect
 
-        sim_detect(seq, seed=d.seed, out=det_path)
+        sim_detect(seq, seed=d.seed, out=det_path, config=SimDetectorConfig(paint_share=d.paint_fp))
     elif d.backend == "yolo":
         from pavemap.detect.yolo import detect_sequence as yolo_detect
 
@@ -204,6 +135,28 @@ def _detect(seq: Sequence, d: DetectorConfig, device: str, out: Path) -> Path:
 
         write_detections(det_path, load_detections(src, seq))
     return det_path
+
+
+def skipped_text(metrics: dict) -> str:
+    """The detections the filter did not use, with counts by reason, in one line ('' when all were used).
+
+    ``metrics`` is a FusionResult's: ``invalid_by_reason`` (unusable: unknown frame or camera, bad box,
+    unknown class, bad confidence, outside the image), ``below_conf`` and ``filtered_detections`` (off road).
+    """
+    n_in = int(metrics.get("input_detections", 0))
+    invalid = {k: v for k, v in (metrics.get("invalid_by_reason") or {}).items() if v}
+    low, off = int(metrics.get("below_conf", 0)), int(metrics.get("filtered_detections", 0))
+    if not (invalid or low or off):
+        return ""
+    parts = []
+    if invalid:
+        parts.append(f"{sum(invalid.values())} unusable (" + ", ".join(f"{k.replace('_', ' ')} {v}"
+                                                                     for k, v in sorted(invalid.items())) + ")")
+    if low:
+        parts.append(f"{low} below filter.tau_conf")
+    if off:
+        parts.append(f"{off} off the road (filter.tau_road)")
+    return f"skipped {sum(invalid.values()) + low + off} of {n_in} detections: " + ", ".join(parts)
 
 
 def filter_and_fuse(seq: Sequence, detections: list[Detection], surface, filter_config: FilterConfig,  # noqa: ANN001
@@ -249,57 +202,80 @@ def run(
     else:
         cfg, preset_note = config, f"{config.preset} (given)"
     cfg.validate()
+    from pavemap.geo.crs import output_crs
+
+    output_crs(seq.geo_origin, cfg.output.crs)  # a CRS the sequence cannot have fails before any stage
     device = str(resolve_device(cfg.device))
     detector, why = resolve_backend(cfg.detector, seq)  # a missing input stops here, before any stage
+    if detector.backend == "file":  # so does a malformed detections file
+        from pavemap.detect.sources import load_detections
+
+        load_detections(detector.file or seq.root / DETECTIONS_FILE, seq)  # type: ignore[operator]
     out = Path(out_dir) if out_dir is not None else Path("runs") / seq.name
-    _prepare_out(out, seq, overwrite)
-    handler = _setup_log(out)
+    folder = prepare_out(out, seq, overwrite, inputs=(detector.file,))
+    handler, seen = _setup_log(out), _WarningList()
+    log.addHandler(seen)
     try:
         log.info("preset %s", preset_note)
         log.info("detector %s (%s)", detector.backend, why)
+        if folder.info.get("kept"):
+            log.warning("--overwrite kept %d file(s) in %s that pavemap did not write: %s", len(folder.info["kept"]),
+                        out, ", ".join(folder.info["kept"][:5]))
         result = _run(seq, cfg, detector, device, out, progress)
         result.preset, result.detector = preset_note, f"{detector.backend} ({why})"
+        result.warnings = seen.messages
+        folder.record("complete")
         return result
+    except BaseException as e:  # an interrupt too: what this attempt wrote must not look complete
+        with contextlib.suppress(OSError):  # a read-only or full disk: the original error is what matters
+            gone = folder.discard(keep_on_failure)
+            log.error("failed (%s: %s); removed %d unfinished result file(s); rerun to resume",
+                      type(e).__name__, e, len(gone))
+            folder.record("failed")
+        raise
     finally:
-        log.removeHandler(handler)
+        for h in (handler, seen):
+            log.removeHandler(h)
         handler.close()
+
+
+class _WarningList(logging.Handler):
+    """Collects the run's warnings for the console (they are in run.log as well)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
 
 
 def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, out: Path,
          progress: bool) -> RunResult:
-    import dataclasses
-
-    stages = _Stages(out)
+    stages = Stages(out)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
-    seq_key = _hash_sequence(seq)
+    seq_key = hash_sequence(seq)
     log.info("run %s on %s (device %s)", seq.name, seq.root, device)
     timings: dict[str, float] = {}
 
     mesh_dir = out / "mesh"
     mesh, timings["mesh"] = _mesh_stage(seq, cfg, device, seq_key, stages, mesh_dir, progress)
-
-    # Stage 2a: detection.
-    det_src = _file_hash(Path(detector.weights)) if detector.weights else None
-    key = _hash(seq_key, dataclasses.asdict(detector), det_src,
-                _file_hash(Path(detector.file)) if detector.file else None)
-    t = time.perf_counter()
-    if stages.done("detect", key) and (out / DETECTIONS_FILE).is_file():
-        log.info("detect: up to date")
-        timings["detect"] = stages.seconds("detect") or 0.0
-    else:
-        stages.invalidate_after("detect")
-        log.info("detect: backend %s", detector.backend)
-        _detect(seq, detector, device, out)
-        timings["detect"] = time.perf_counter() - t
-        stages.mark("detect", key, timings["detect"])
+    key, timings["detect"] = _detect_stage(seq, detector, device, seq_key, stages, out)
     detections = read_detections(out / DETECTIONS_FILE)
 
     # Stages 2b + 3: filter, then fusion (cheap: always redone, so the result is in memory).
     t = time.perf_counter()
     result = filter_and_fuse(seq, detections, mesh.surface, cfg.filter, cfg.fusion, mesh=mesh, progress=progress)
+    from pavemap.mesh.geometry import mark_observed
+
+    mark_observed(result.instances, mesh)  # a defect on ground no view observed says so (issue 12)
     timings["fuse"] = time.perf_counter() - t
-    stages.mark("fuse", _hash(key, dataclasses.asdict(cfg.filter), dataclasses.asdict(cfg.fusion)), timings["fuse"])
+    stages.mark("fuse", hash_parts(key, dataclasses.asdict(cfg.filter), dataclasses.asdict(cfg.fusion)),
+                timings["fuse"])
     log.info("fuse: %d detections in, %d defects", len(detections), len(result.instances))
+    skipped = skipped_text(result.metrics)
+    if skipped:
+        log.info("%s", skipped)
 
     # Evaluation against synthetic truth, when the sequence has it.
     evaluation = None
@@ -316,6 +292,9 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
     mesh_metrics_file = mesh_dir / "metrics.json"
     if mesh_metrics_file.is_file():
         metrics["mesh"] = json.loads(mesh_metrics_file.read_text())
+        geometry = metrics["mesh"].get("geometry") or {}
+        if geometry:  # the surface's self-check, up front (issue 12)
+            metrics["geometry"] = {k: geometry.get(k) for k in ("trustworthy", "source", "warnings")}
     if evaluation is not None:
         metrics["evaluation"] = evaluation
 
@@ -334,24 +313,60 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
     )
 
 
-def _mesh_stage(seq: Sequence, cfg: RunConfig, device: str, seq_key: str, stages: _Stages, mesh_dir: Path,
-                progress: bool) -> tuple[object, float]:
-    """Stage 1: the road mesh, reused when its stamp matches. Returns (RoadMesh, seconds)."""
-    import dataclasses
+def _detect_stage(seq: Sequence, detector: DetectorConfig, device: str, seq_key: str, stages: Stages,
+                  out: Path) -> tuple[str, float]:
+    """Stage 2a: ``detections.jsonl``, reused when its stamp matches. Returns (stage key, seconds)."""
+    parts = detect_parts(seq_key, detector, device, seq)
+    key = hash_parts(parts)
+    if stages.done("detect", key) and (out / DETECTIONS_FILE).is_file():
+        log.info("detect: up to date")
+        return key, stages.seconds("detect") or 0.0
+    t = time.perf_counter()
+    stages.invalidate_after("detect")
+    log.info("detect: backend %s (%s)", detector.backend, why_changed(stages.parts("detect"), parts))
+    stages.start("detect", key, parts)
+    _detect(seq, detector, device, out)
+    seconds = time.perf_counter() - t
+    stages.mark("detect", key, seconds, parts)
+    return key, seconds
 
+
+def _mesh_stage(seq: Sequence, cfg: RunConfig, device: str, seq_key: str, stages: Stages, mesh_dir: Path,
+                progress: bool) -> tuple[object, float]:
+    """Stage 1: the road mesh, reused when its stamp matches. Returns (RoadMesh, seconds).
+
+    An interrupted stage resumes from ``mesh/checkpoint.pt`` only when it was started with the same key:
+    a checkpoint of other inputs or settings (fewer epochs, another seed, other learning rates …) would
+    give a mesh no uninterrupted run gives, so it is deleted and the stage starts afresh.
+    """
     from pavemap.mesh import load_mesh, reconstruct
+    from pavemap.mesh.checkpoint import CHECKPOINT
 
     mesh_cfg = dataclasses.replace(cfg.mesh, device=device) if hasattr(cfg.mesh, "device") else cfg.mesh
-    key = _hash(seq_key, dataclasses.asdict(mesh_cfg))
+    parts = mesh_parts(seq_key, mesh_cfg)
+    key = hash_parts(parts)
     if stages.done("mesh", key) and (mesh_dir / "metrics.json").is_file():
         log.info("mesh: up to date, reusing %s", mesh_dir)
         return load_mesh(mesh_dir), stages.seconds("mesh") or 0.0
     t = time.perf_counter()
-    stages.invalidate_after("mesh")
-    log.info("mesh: reconstructing")
-    mesh, _ = reconstruct(seq, mesh_dir, mesh_cfg, progress=progress)
+    stages.invalidate_after("detect")  # what uses the mesh; detection does not
+    why = why_changed(stages.parts("mesh"), parts)
+    checkpoint = mesh_dir / CHECKPOINT
+    if checkpoint.is_file() and stages.started_key("mesh") == key and mesh_cfg.resume:
+        log.info("mesh: resuming the interrupted stage from %s (same inputs and settings)", checkpoint)
+    else:
+        if checkpoint.is_file():
+            checkpoint.unlink()
+            log.info("mesh: checkpoint discarded, it belongs to other inputs or settings (%s)", why)
+        log.info("mesh: reconstructing (%s)", why)
+    stages.start("mesh", key, parts)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh, _ = reconstruct(seq, mesh_dir, mesh_cfg, progress=progress)
+    for w in caught:
+        log.warning("mesh: %s", w.message)
     seconds = time.perf_counter() - t
-    stages.mark("mesh", key, seconds)
+    stages.mark("mesh", key, seconds, parts)
     return mesh, seconds
 
 
@@ -365,4 +380,5 @@ def _export(seq, cfg, out, mesh, mesh_dir, result, metrics, evaluation, progress
         out, result, metrics, seq=seq, geo_origin=seq.geo_origin, evaluation=evaluation, config=cfg.to_dict(),
         output=cfg.output, bev_rgb=bev["rgb"], bev_semantic=bev["semantic_rgb"],
         mesh_grid=surface_grid(mesh.surface), mesh_path=mesh_dir / "mesh.ply", progress=progress,
+        surface=mesh.surface,
     )

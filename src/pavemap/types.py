@@ -55,6 +55,7 @@ class Camera:
     width: int
     height: int
     K: np.ndarray
+    ego_mask: str | None = None  # sequence-relative PNG (255 = the ego vehicle: bonnet, dashboard), or None
 
     def scaled(self, scale: float) -> Camera:
         """The same camera for an image resized by ``scale`` (pixel-centre convention)."""
@@ -86,12 +87,17 @@ class Frame:
 
 @dataclass
 class GeoOrigin:
-    """WGS84 position of the world origin and compass heading of world +x (degrees from north)."""
+    """WGS84 position of the world origin and compass heading of world +x (degrees from north).
+
+    ``georef``: how the origin was found when it was fitted to GPS (source file, fixes, inliers,
+    residual RMS in metres, scale, warnings; :func:`pavemap.geo.georef.georeference`), else None.
+    """
 
     lat: float
     lon: float
     alt: float = 0.0
     heading_deg: float = 90.0
+    georef: dict | None = None
 
 
 @dataclass

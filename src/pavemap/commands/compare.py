@@ -20,8 +20,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Classify defects as new, grown, unchanged or gone between two runs."""
         from pavemap.compare import compare_runs
+        from pavemap.io.owned import undo_on_failure
 
-        s = compare_runs(run_a, run_b, out, match_m=match_m, grow_ratio=grow_ratio)
+        with undo_on_failure(out):  # changes.geojson without changes.json would look like a result
+            s = compare_runs(run_a, run_b, out, match_m=match_m, grow_ratio=grow_ratio)
         c = s["counts"]
         typer.echo(f"survey A {s['defects_a']} defects, survey B {s['defects_b']} defects "
                    f"({'lon/lat' if s['coordinates'] == 'lonlat' else 'local metres'})")

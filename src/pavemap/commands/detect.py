@@ -34,9 +34,10 @@ def register(app: typer.Typer) -> None:
         d = opt.announce_detector(rc, s)
         out_path = out if out is not None else seq / DETECTIONS_FILE
         if d.backend == "sim":
+            from pavemap.synth.simdetector import SimDetectorConfig
             from pavemap.synth.simdetector import detect_sequence as sim_detect
 
-            n = sim_detect(s, seed=d.seed, out=out_path)
+            n = sim_detect(s, seed=d.seed, out=out_path, config=SimDetectorConfig(paint_share=d.paint_fp))
         elif d.backend == "yolo":
             from pavemap.detect.yolo import detect_sequence as yolo_detect
 

@@ -72,29 +72,41 @@ def register(app: typer.Typer) -> None:
         config: str | None = opt.CONFIG,
         sets: list[str] | None = opt.SET,
         truth: bool = typer.Option(True, help="Also write eval.json when the sequence has truth."),
+        crs: str | None = opt.CRS,
+        overwrite: bool = typer.Option(False, help="Replace a folder holding pavemap output of another sequence "
+                                       "(deletes only the files pavemap wrote there)."),
     ) -> None:
         """Filter detections, cast them onto the road surface and fuse them into defect instances."""
         from pavemap.detect.sources import load_detections
         from pavemap.export.run_files import write_fusion_outputs
+        from pavemap.io.owned import writing
         from pavemap.io.sequence import DETECTIONS_FILE, read_sequence
-        from pavemap.pipeline import filter_and_fuse
+        from pavemap.pipeline import filter_and_fuse, skipped_text
+        from pavemap.run_folder import legacy_run
 
         s = read_sequence(seq)
-        rc = opt.resolve_config(s, config, sets)
+        rc = opt.resolve_config(s, config, sets, {"output.crs": crs})
         cfg = rc.fusion
         det_path = detections if detections is not None else seq / DETECTIONS_FILE
         if not det_path.exists():
             raise PavemapError(f"{det_path}: no detections (run `pavemap detect {seq}` or give --detections)")
         dets = load_detections(det_path, s)
-        surf, m = _surface(surface.value, s, mesh)
-        result = filter_and_fuse(s, dets, surf, rc.filter, cfg, mesh=m)
-        ev = None
-        if truth and (seq / "truth" / "defects.geojson").is_file():
-            from pavemap.evaluate import evaluate
+        source = str(seq.resolve())
+        with writing(out, "fuse", overwrite, inputs=(seq, mesh, detections), info={"source": source},
+                     same=lambda o: o.get("source") == source, legacy=legacy_run, early=False) as folder:
+            folder.remove_own("metrics.json")  # an earlier result's completion marker, until this one is done
+            surf, m = _surface(surface.value, s, mesh)
+            result = filter_and_fuse(s, dets, surf, rc.filter, cfg, mesh=m)
+            ev = None
+            if truth and (seq / "truth" / "defects.geojson").is_file():
+                from pavemap.evaluate import evaluate
 
-            ev = evaluate(result, seq)
-        write_fusion_outputs(out, result, s.geo_origin, evaluation=ev)
+                ev = evaluate(result, seq)
+            write_fusion_outputs(out, result, s.geo_origin, evaluation=ev, seq=s, surface=surf, output=rc.output)
         mt = result.metrics
+        skipped = skipped_text(mt)
+        if skipped:
+            typer.echo(skipped)
         typer.echo(
             f"{mt['input_detections']} detections: {mt['invalid_detections']} invalid, {mt['below_conf']} below "
             f"conf, {mt['filtered_detections']} off road (FR {mt['filter_rate']:.1%}), {mt['valid_detections']} "

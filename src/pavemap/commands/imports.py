@@ -8,6 +8,8 @@ With neither, the warned trajectory-corridor fallback writes road masks
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
@@ -25,6 +27,31 @@ _CLASS_MAP = typer.Option(
 _SEGMENTER = typer.Option(None, "--segmenter", help="ultralytics semantic-segmentation weights (.pt).")
 _NO_SEM = typer.Option(False, "--no-semantics", help="Write no semantic masks (no fallback either).")
 _DEVICE = typer.Option("auto", help=f"Segmenter device: {DEVICE_HELP}.")
+_OVERWRITE = typer.Option(False, "--overwrite", help="Replace a sequence folder pavemap wrote (deletes only the "
+                          "files pavemap wrote there; a folder holding anything else is refused).")
+
+
+def _owned_output(input_arg: str) -> Callable:
+    """An import command writes into ``--out`` only when it is new, empty or a sequence folder pavemap wrote
+    (``--overwrite``), never inside its input ``input_arg``; a failed import deletes what it wrote
+    (:func:`pavemap.io.owned.writing`)."""
+    def wrap(command: Callable) -> Callable:
+        @functools.wraps(command)
+        def run(**kw: object) -> object:
+            from pavemap.io.owned import writing
+
+            source = kw.get(input_arg)
+            with writing(kw["out"], "sequence", bool(kw.get("overwrite")), inputs=(source,),  # type: ignore[arg-type]
+                         info={"source": str(source)}):
+                return command(**kw)
+        return run
+    return wrap
+_GPS = typer.Option(None, "--gps", help="GPS track: .gpx, NMEA log (RMC/GGA), .csv (lat, lon[, alt][, heading], "
+                    "timestamp), or 'exif' (the images' EXIF GPS); fitted to the trajectory -> geo origin.")
+_GPS_OFFSET = typer.Option(None, "--gps-offset", help="GPS time minus frame time, seconds (default: 0 when both "
+                           "are absolute or both relative, else the first frame is taken at the first fix).")
+_GEO_ORIGIN = typer.Option(None, "--geo-origin", help="LAT,LON[,ALT[,HEADING]] of the world origin by hand "
+                           "(HEADING: degrees clockwise from north of world +x).")
 
 
 def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, segmenter: Path | None,
@@ -51,11 +78,21 @@ def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, seg
 
 
 def _done(seq: Sequence, out: Path, sem: str) -> None:
+    from pavemap.geo.attach import describe
+
     views = sum(len(f.views) for f in seq.frames)
     typer.echo(f"{seq.name}: {len(seq.frames)} frames, {views} views, semantics: {sem} -> {out}")
+    typer.echo(describe(seq))
+
+
+def _geo(gps: str | None, offset: float | None, origin: str | None, oxts_first: int | None = None):  # noqa: ANN202
+    from pavemap.geo.attach import GeoInput
+
+    return GeoInput(gps, offset, origin, oxts_first)
 
 
 @imports_app.command("kitti")
+@_owned_output("root")
 def kitti_cmd(
     root: Path = typer.Argument(..., help="KITTI odometry root (holds sequences/ and poses/)."),
     out: Path = typer.Option(..., "--out", help="Output sequence folder."),
@@ -65,17 +102,24 @@ def kitti_cmd(
     stop: int | None = typer.Option(None, help="Stop before this frame."),
     stride: int = typer.Option(1, help="Take every n-th frame."),
     lidar: bool = typer.Option(True, help="Write sparse depth from velodyne/*.bin when present."),
+    oxts: Path | None = typer.Option(None, "--oxts", help="KITTI raw drive folder (or its oxts/) with the GPS/IMU "
+                                     "records of this sequence -> geo origin."),
+    oxts_first: int | None = typer.Option(None, help="OXTS record of odometry frame 0 (default: the devkit's "
+                                          "offset for sequences 00-10, e.g. 1100 for 08)."),
+    geo_origin: str | None = _GEO_ORIGIN,
     labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
-    no_semantics: bool = _NO_SEM, device: str = _DEVICE,
+    no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """KITTI odometry sequence → sequence folder."""
     from pavemap.io.kitti import import_kitti
 
-    seq = import_kitti(root, sequence, out, camera=camera, start=start, stop=stop, stride=stride, lidar=lidar)
+    seq = import_kitti(root, sequence, out, camera=camera, start=start, stop=stop, stride=stride, lidar=lidar,
+                       geo=_geo(str(oxts) if oxts else None, None, geo_origin, oxts_first))
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, 1.65, device))
 
 
 @imports_app.command("nuscenes")
+@_owned_output("dataroot")
 def nuscenes_cmd(
     dataroot: Path = typer.Argument(..., help="nuScenes dataroot (holds v1.0-mini/, samples/, sweeps/)."),
     out: Path = typer.Option(..., "--out", help="Output sequence folder."),
@@ -85,7 +129,7 @@ def nuscenes_cmd(
     cameras: str | None = typer.Option(None, help="Comma-separated channels (default: the six CAM_*)."),
     max_frames: int | None = typer.Option(None, help="Keep at most this many frames."),
     labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
-    no_semantics: bool = _NO_SEM, device: str = _DEVICE,
+    no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """One nuScenes scene (6 cameras, keyframes or sweeps) → sequence folder."""
     import numpy as np
@@ -100,6 +144,7 @@ def nuscenes_cmd(
 
 
 @imports_app.command("folder")
+@_owned_output("images")
 def folder_cmd(
     images: Path = typer.Argument(..., help="Images folder (files, or one subfolder per camera)."),
     out: Path = typer.Option(..., "--out", help="Output sequence folder."),
@@ -107,17 +152,27 @@ def folder_cmd(
     poses: str = typer.Option(..., "--poses", help="poses.csv, or 'sfm' to estimate them with pycolmap."),
     camera_height: float = typer.Option(1.5, help="Camera height above the road, metres (SfM scale, fallback)."),
     name: str | None = typer.Option(None, help="Sequence name (default: the folder name)."),
+    gps: str | None = _GPS, gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
     labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
-    no_semantics: bool = _NO_SEM, device: str = _DEVICE,
+    no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
+    ego_mask: str | None = typer.Option(
+        None, "--ego-mask", help="Ego vehicle (bonnet, dashboard): 'auto' (default with --poses sfm), 'none', "
+        "or a mask image (white = ego); kept out of SfM, stored as masks/<camera>.png."),
+    refine_intrinsics: bool = typer.Option(
+        False, "--refine-intrinsics", help="SfM refines nominal focal length and principal point."),
 ) -> None:
-    """Own drive: images + cameras.json + poses.csv (or --poses sfm) → sequence folder."""
+    """Own drive: images + cameras.json + poses.csv (or --poses sfm) → sequence folder.
+
+    GPS: lat/lon[/alt/heading] columns in poses.csv, or --gps FILE|exif; or --geo-origin by hand."""
     from pavemap.io.folder import import_folder
 
-    seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height)
+    seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height,
+                        geo=_geo(gps, gps_offset, geo_origin), ego_mask=ego_mask, refine_intrinsics=refine_intrinsics)
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device))
 
 
 @imports_app.command("video")
+@_owned_output("video")
 def video_cmd(
     video: Path = typer.Argument(..., help="Video file (any format OpenCV reads)."),
     out: Path = typer.Option(..., "--out", help="Output sequence folder."),
@@ -128,15 +183,35 @@ def video_cmd(
     stop: float | None = typer.Option(None, help="Stop time, seconds."),
     max_frames: int | None = typer.Option(None, help="Keep at most this many frames."),
     camera_height: float = typer.Option(1.5, help="Camera height above the road, metres (SfM scale, fallback)."),
+    gps: str | None = _GPS, gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
     labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
-    no_semantics: bool = _NO_SEM, device: str = _DEVICE,
+    no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """A video of one camera → frames at --fps with poses from a CSV or SfM → sequence folder."""
     from pavemap.io.folder import import_video
 
     seq = import_video(video, cameras, poses, out, fps=fps or None, start=start, stop=stop, max_frames=max_frames,
-                       camera_height=camera_height)
+                       camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin))
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device))
+
+
+@imports_app.command("gps")
+def gps_cmd(
+    seq: Path = typer.Argument(..., help="An existing sequence folder (its sequence.json is rewritten)."),
+    gps: str | None = typer.Option(None, "--gps", help="GPS track (.gpx, NMEA, .csv) or a KITTI raw oxts folder."),
+    gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
+) -> None:
+    """Georeference an existing sequence: fit its trajectory to a GPS track (rigid), or set the origin by hand."""
+    from pavemap.errors import PavemapError
+    from pavemap.geo.attach import attach_geo, describe
+    from pavemap.io.sequence import read_sequence, write_sequence
+
+    if gps is None and geo_origin is None:
+        raise PavemapError("give --gps FILE or --geo-origin LAT,LON[,ALT[,HEADING]]")
+    s = read_sequence(seq)
+    attach_geo(s, _geo(gps, gps_offset, geo_origin))
+    write_sequence(s, seq)
+    typer.echo(f"{s.name}: {describe(s)}")
 
 
 def register(app: typer.Typer) -> None:

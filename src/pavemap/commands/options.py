@@ -56,6 +56,8 @@ SET = typer.Option(
 )
 DEVICE = typer.Option(None, "--device", help=f"{DEVICE_HELP} (= --set device=...). Default: the config's, auto.")
 EPOCHS = typer.Option(None, "--epochs", help="Mesh training epochs (= --set mesh.epochs=N).")
+CRS = typer.Option(None, "--crs", help="CRS of the GeoTIFF and GIS layers of a georeferenced run: auto (the "
+                   "drive's UTM zone) or e.g. EPSG:25832 (= --set output.crs=...).")
 DETECTOR = typer.Option(
     None, "--detector", case_sensitive=False,
     help="auto: sim where the sequence has synthetic truth, else yolo with the shipped weights "

@@ -28,14 +28,16 @@ def register(app: typer.Typer) -> None:
             "mesh.pose_refine=...; mesh.pose_per, mesh.pose_prior_deg, mesh.pose_prior_m tune it). Default: off."),
     ) -> None:
         """Reconstruct the road surface mesh (height, colour, semantics) from a sequence."""
+        from pavemap.io.owned import undo_on_failure
         from pavemap.io.sequence import read_sequence
         from pavemap.mesh import reconstruct as run
+        from pavemap.mesh.checkpoint import CHECKPOINT
 
         s = read_sequence(seq)
         rc = opt.resolve_config(s, config, sets, {"device": device, "mesh.epochs": epochs, "mesh.seed": seed,
                                                   "mesh.resume": resume, "mesh.pose_refine": pose_refine})
         cfg = dataclasses.replace(rc.mesh, device=rc.device)
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True) as caught, undo_on_failure(out, keep=(CHECKPOINT,)):
             warnings.simplefilter("always")
             _, m = run(s, out, cfg, progress=True)
         for w in caught:

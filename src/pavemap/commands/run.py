@@ -29,7 +29,9 @@ def register(app: typer.Typer) -> None:
         detections: Path | None = opt.DETECTIONS,
         device: str | None = opt.DEVICE,
         epochs: int | None = opt.EPOCHS,
-        overwrite: bool = typer.Option(False, help="Replace a run folder that holds another run."),
+        crs: str | None = opt.CRS,
+        overwrite: bool = typer.Option(False, help="Replace a run folder that holds another pavemap run (deletes "
+                                       "only the files pavemap wrote there)."),
     ) -> None:
         """Run stage 1 (mesh), detection, filtering, fusion and all outputs on a sequence."""
         from pavemap.io.sequence import read_sequence
@@ -37,10 +39,11 @@ def register(app: typer.Typer) -> None:
 
         s = read_sequence(seq)
         cfg = opt.resolve_config(s, config, sets, {**opt.detector_shortcuts(detector, weights, detections),
-                                                "device": device, "mesh.epochs": epochs})
+                                                "device": device, "mesh.epochs": epochs,
+                                                "output.crs": crs})
         opt.announce_detector(cfg, s)
         result = run_pipeline(s, cfg, out, overwrite=overwrite)
-        typer.echo(result.summary())
+        report(result)
         typer.echo(f"outputs in {out}  (report: {out / 'report.html'})")
 
     @app.command()
@@ -59,7 +62,8 @@ def register(app: typer.Typer) -> None:
         seq_dir = out / "scene"
         if not (seq_dir / "sequence.json").is_file():
             typer.echo(f"synthesising a nuScenes-like scene ({DEMO_FRAMES} frames x 6 cameras, scale {DEMO_SCALE})")
-            synthesize(seq_dir, preset="nuscenes-like", seed=seed, frames=DEMO_FRAMES, scale=DEMO_SCALE)
+            # no depth layer: the monocular case users have; the geometry comes from the images (issue 12)
+            synthesize(seq_dir, preset="nuscenes-like", seed=seed, frames=DEMO_FRAMES, scale=DEMO_SCALE, depth="none")
         from pavemap.synth import contact_sheet
 
         sheet = contact_sheet(seq_dir, out / "contact_sheet.png", n_frames=3)
@@ -71,5 +75,19 @@ def register(app: typer.Typer) -> None:
         result = run_pipeline(s, cfg, out / "run", overwrite=True)
         took = time.perf_counter() - t0
         typer.echo("")
-        typer.echo(f"pavemap demo: {result.summary()}")
+        report(result, prefix="pavemap demo: ")
         typer.echo(f"time {took:.0f} s; report: {(out / 'run' / 'report.html').resolve()}")
+
+
+def report(result: object, prefix: str = "") -> None:
+    """The console summary of a run: its warnings, the detections not used (counts by reason), the result."""
+    from pavemap.pipeline import skipped_text
+
+    summary = result.summary()  # type: ignore[attr-defined]
+    for w in getattr(result, "warnings", []):
+        if w.removeprefix("mesh: ") not in summary:  # the summary repeats the geometry check's own
+            typer.secho(f"warning: {w}", fg=typer.colors.YELLOW, err=True)
+    skipped = skipped_text(getattr(result, "metrics", {}))
+    if skipped:
+        typer.echo(skipped)
+    typer.echo(prefix + summary)

@@ -60,6 +60,9 @@ def resolve_backend(config: DetectorConfig, seq: Sequence) -> tuple[DetectorConf
             f"{seq.root / TRUTH_DEFECTS if seq.root else TRUTH_DEFECTS}: not found; the simulated detector needs "
             "synthetic truth (pavemap synth); use --detector yolo (shipped weights) or --detector file"
         )
+    if backend == "sim" and not all(v.semantics for f in seq.frames for v in f.views.values()):
+        raise PavemapError(f"{seq.root}: the simulated detector needs the semantic map of every view; use "
+                           "--detector yolo or --detector file")
     weights = config.weights
     if backend == "yolo":
         if weights is None:

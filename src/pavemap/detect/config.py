@@ -29,6 +29,8 @@ class DetectorConfig:
     - ``file``: file backend input; None = ``SEQ/detections.jsonl``.
     - ``seed``: sim random seed. ``imgsz`` / ``conf`` / ``batch`` / ``class_map``: yolo inference
       (``conf`` keeps nearly everything: the filter's ``tau_conf`` decides later).
+    - ``paint_fp``: sim only: share of all detections that are false positives on lane paint (a real
+      detector's mistake on lane lines), in [0, 0.5].
     """
 
     backend: Backend = "auto"
@@ -39,6 +41,7 @@ class DetectorConfig:
     conf: float = 0.01
     batch: int = 8
     class_map: str | None = None
+    paint_fp: float = 0.0
 
     def __post_init__(self) -> None:
         self.validate()
@@ -55,6 +58,9 @@ class DetectorConfig:
             raise PavemapError(f"detector.conf must be in [0, 1), got {self.conf}")
         if self.seed < 0:
             raise PavemapError(f"detector.seed must be >= 0, got {self.seed}")
+        ok = isinstance(self.paint_fp, int | float) and math.isfinite(self.paint_fp)
+        if not (ok and 0.0 <= self.paint_fp <= 0.5):
+            raise PavemapError(f"detector.paint_fp must be in [0, 0.5], got {self.paint_fp!r}")
 
 
 @dataclass
@@ -67,6 +73,9 @@ class FilterConfig:
       mesh's semantics seen through the box), ``both`` (both ratios must pass).
     - ``mesh_mask_grid``: rays per box side when the mesh mask is sampled from the mesh surface.
     - ``mesh_mask_scale``: render scale when the mesh mask comes from a rendered view instead.
+    - ``tau_paint``: drop an on-road detection that lane paint spans (min of the shares of its rows and
+      columns holding paint ≥ ``tau_paint``; paint from the semantics' paint class, else the image;
+      :mod:`pavemap.detect.paint`). 1 turns the rule off.
     """
 
     tau_conf: float = 0.05
@@ -74,12 +83,16 @@ class FilterConfig:
     mask: MaskSource = "frame"
     mesh_mask_scale: float = 0.25
     mesh_mask_grid: int = 8
+    tau_paint: float = 0.7
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
         """Raise PavemapError naming the first bad field."""
+        if not (isinstance(self.tau_paint, int | float) and math.isfinite(self.tau_paint)
+                and 0.0 < self.tau_paint <= 1.0):
+            raise PavemapError(f"filter.tau_paint must be in (0, 1], got {self.tau_paint!r}")
         if self.mask not in MASKS:
             raise PavemapError(f"filter.mask must be one of {', '.join(MASKS)}, got {self.mask!r}")
         if not 0.0 <= self.tau_conf <= 1.0:

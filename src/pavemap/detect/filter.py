@@ -173,6 +173,10 @@ def mesh_box_ratio(mesh: object, K: np.ndarray, T_world_cam: np.ndarray, boxes: 
     with torch.no_grad():
         o, d = pixel_rays(Kt, Tt, torch.stack([u, v], 1))
         hit = intersect_rays(surface, o, d)
+        if not getattr(mesh, "has_semantics", True) or not mesh.class_ids:  # type: ignore[attr-defined]
+            # A mesh trained without semantic maps has no classes: its footprint (the crop around the
+            # trajectory) is the road, as stage 1 warns.
+            return hit.hit.reshape(n, grid * grid).double().mean(1).cpu().numpy()
         logits = hit.interpolate(mesh.sem_logits.detach().double())  # type: ignore[attr-defined]
         ids = torch.as_tensor(mesh.class_ids, dtype=torch.long, device=dev)[logits.argmax(1)]  # type: ignore[attr-defined]
     road = torch.as_tensor(road_lut, device=dev)[ids.clamp(0, 255)] & hit.hit
@@ -278,6 +282,13 @@ def filter_detections(
     if masks.fallbacks.get("no_semantics"):
         log.warning("%d view(s) have no semantic map; %s", masks.fallbacks["no_semantics"],
                     "used the mesh road mask" if mesh is not None else "their detections are not road-filtered")
+    # on-road boxes next face the ego-mask and lane-paint rules (pavemap.detect.paint)
+    from pavemap.detect.paint import mark_paint_and_ego
+
+    on_road = {k: ([i for i in idx if r_road[i] > config.tau_road], None) for k, idx in by_view.items()}
+    on_road = {k: (idx, np.array([clean[i].box for i in idx], dtype=np.float64))  # type: ignore[union-attr]
+               for k, (idx, _) in on_road.items() if idx}
+    r_paint = mark_paint_and_ego(seq, on_road, reasons, config.tau_paint)
     kept: list[Detection] = []
     records: list[dict] = []
     for i, d in enumerate(detections):
@@ -294,6 +305,7 @@ def filter_detections(
             "cls": d.cls, "conf": float(d.conf) if _finite(d.conf) else None,
             "kept": reasons[i] == "kept", "reason": reasons[i],
             "r_road": None if not np.isfinite(r_road[i]) else round(float(r_road[i]), 4),
+            "r_paint": None if not np.isfinite(r_paint[i]) else round(float(r_paint[i]), 4),
         })
     return FilterResult(kept, records, config, masks.mode, dict(masks.fallbacks), time.perf_counter() - t0)
 

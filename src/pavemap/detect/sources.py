@@ -31,6 +31,8 @@ def read_yolo_txt(path: str | os.PathLike, frame: int, camera: str, width: int, 
         lines = path.read_text(encoding="utf-8").splitlines()
     except OSError as e:
         raise SequenceError(path, f"cannot read YOLO labels ({e})") from None
+    except UnicodeDecodeError as e:
+        raise SequenceError(path, f"is not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start})") from None
     for ln, line in enumerate(lines, 1):
         parts = line.split()
         if not parts:

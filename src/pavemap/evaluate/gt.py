@@ -51,10 +51,13 @@ def load_truth(seq_root: str | os.PathLike) -> list[dict]:
     return out
 
 
-def _read_layer(path: Path) -> DefectLayer:
-    """A defects GeoJSON (any pavemap writer, local or lon/lat) with its geometries in world metres."""
+def _read_layer(path: Path, name: str = "defects") -> DefectLayer:
+    """A defects GeoJSON (any pavemap writer, local or lon/lat) or GeoPackage layer ``name`` with its
+    geometries in world metres."""
+    from pavemap.export.gis import read_defect_layer
+
     try:
-        layer = read_geojson(path)
+        layer = read_geojson(path) if path.suffix.lower() != ".gpkg" else read_defect_layer(path, name)
     except PavemapError as e:
         raise SequenceError(path, str(e).removeprefix(f"{path}: ")) from None
     if layer.coordinates == "lonlat" and layer.meta.get("geo_origin") is None and len(layer):
@@ -172,7 +175,7 @@ def _read_jsonl(path: Path) -> list[dict]:
         raise SequenceError(path, f"cannot read JSON lines ({e})") from None
 
 
-def _read_instances(path: Path) -> list[dict]:
+def _read_instances(path: Path, name: str = "defects") -> list[dict]:
     """Predictions of a run folder's defects GeoJSON: cls, polygon and centre in world metres.
 
     The centre is the ``x_m``, ``y_m`` properties (always local metres, exact to the mm); the
@@ -180,7 +183,7 @@ def _read_instances(path: Path) -> list[dict]:
     """
     if not path.is_file():
         return []
-    layer = _read_layer(path)
+    layer = _read_layer(path, name)
     out = []
     for k, (poly, p) in enumerate(zip(layer.geometries, layer.properties, strict=True)):
         if poly is None or poly.is_empty:
@@ -219,8 +222,10 @@ def evaluate(result_or_run_dir: Any, seq_root: str | os.PathLike, match_dist_m: 
         if not (run_dir / "detections_mapped.jsonl").is_file():
             raise PavemapError(f"{run_dir}: not a run folder (no detections_mapped.jsonl; "
                                "written by `pavemap run` or `pavemap fuse`)")
-        preds = _read_instances(run_dir / "defects.geojson")
-        base = _read_instances(run_dir / "baseline_defects.geojson")
+        from pavemap.export.gis import run_defects_path
+
+        preds = _read_instances(*run_defects_path(run_dir, "defects"))  # GeoJSON, or survey.gpkg without geo
+        base = _read_instances(*run_defects_path(run_dir, "baseline_defects"))
         records = _read_jsonl(run_dir / "detections_mapped.jsonl")
         mf = run_dir / "metrics.json"
         metrics = json.loads(mf.read_text(encoding="utf-8")) if mf.is_file() else {}

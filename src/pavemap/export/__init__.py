@@ -145,7 +145,7 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
                   seq: Sequence | None = None, output: object | None = None,
                   mesh_path: str | os.PathLike | None = None, trajectory: np.ndarray | None = None,
                   title: str | None = None, progress: bool = True,
-                  written: dict[str, Path] | None = None) -> dict[str, Path]:
+                  written: dict[str, Path] | None = None, valid: np.ndarray | None = None) -> dict[str, Path]:
     """Write every output of a run into ``out_dir``; returns {name: path}.
 
     Arrays: ``prob_map`` (H, W) float and ``class_maps`` (4, H, W) float on ``grid`` (a
@@ -163,6 +163,9 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
     ``output``: OutputConfig or dict: figures (bool), report (bool), overlay_frames (int), sweep_tau_conf.
     ``mesh_path``: stage 1's road_mesh.ply, copied into ``out_dir`` when it lives elsewhere.
     ``trajectory`` (F, 2|3) world metres, drawn on the report map (default: the sequence's).
+    ``valid`` (H, W) bool on ``grid``: the surveyed cells (the GeoTIFF's nodata elsewhere; default all).
+    Layers: ``defects.geojson`` only with ``geo_origin`` (GeoJSON is WGS84), ``survey.gpkg`` always
+    (:mod:`pavemap.export.gis`; CRS ``output.crs``, extra formats ``output.extra_formats``).
     """
     # matplotlib and rasterio load here, not at import: `import pavemap` stays fast for the CLI
     from pavemap.export.figures import fig_bev_overview
@@ -195,12 +198,20 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
         bar.update(1)
 
     try:
-        if "defects.geojson" not in done:
+        if "defects.geojson" not in done and geo_origin is not None:
             paths["defects.geojson"] = write_geojson(out / "defects.geojson", instances, geo_origin)
-        step("defects.geojson")
+        if "survey.gpkg" not in done:
+            from pavemap.export.gis import write_gis
+
+            paths.update(write_gis(out, instances, geo_origin=geo_origin, crs=_opt(output, "crs", "auto"), seq=seq,
+                                   formats=tuple(_opt(output, "extra_formats", ())),
+                                   vehicle=_opt(output, "vehicle", "")))
+        step("defect layers")
         paths["defects.csv"] = write_csv(out / "defects.csv", instances, geo_origin)
         step("defects.csv")
-        paths["defect_map.tif"] = write_geotiff(out / "defect_map.tif", prob_map, class_maps, grid, geo_origin)
+        paths["defect_map.tif"] = write_geotiff(out / "defect_map.tif", prob_map, class_maps, grid, geo_origin,
+                                                crs=_opt(output, "crs", "auto"), valid=valid,
+                                                name=seq.name if seq is not None else "")
         step("defect_map.tif")
         # PNGs are north-up like any picture: our rows go +y, so flip
         if bev_rgb is not None:
@@ -232,10 +243,9 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
                 prob_map=prob_map, grid=grid, geo_origin=geo_origin, metrics=metrics, config=config,
                 detections=detections, figures=figs, files=files, trajectory=trajectory, title=title)
             step("report.html")
-    except PermissionError as e:
-        raise PavemapError(f"{out}: cannot write outputs ({e.strerror or e}: {e.filename})") from None
-    except OSError as e:
-        raise PavemapError(f"{out}: cannot write outputs ({e.strerror or e})") from None
+    except OSError as e:  # read-only, disk full …: say which file (the atomic writer names the final one)
+        where = f": {e.filename}" if e.filename else ""
+        raise PavemapError(f"{out}: cannot write outputs ({e.strerror or e}{where})") from None
     finally:
         bar.close()
     return paths

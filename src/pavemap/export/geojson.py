@@ -51,6 +51,8 @@ PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
     ("y_m", "float", "m", "centre y in the local world frame"),
     ("lon", "float", "degree", "centre WGS84 longitude (only with a geo origin)"),
     ("lat", "float", "degree", "centre WGS84 latitude (only with a geo origin)"),
+    ("observed", "bool", "", "its centre lies on mesh ground a training pixel or triangulated ground point reached "
+     "(false: the height there is a guess; absent with a mesh without the observed layer)"),
 )
 PROPERTY_KEYS = tuple(name for name, *_ in PROPERTY_SCHEMA[:12])
 

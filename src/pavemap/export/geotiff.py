@@ -4,14 +4,15 @@ Band 1 is the total defect probability, bands 2-5 the per-class probabilities (D
 D40), float32 in [0, 1].
 
 Our BEV arrays have row 0 at the smallest y (rows go +y); a raster is stored north-up (row 0 at
-the top), so rows are flipped and the transform has a negative y step.
+the top). Cells outside the surveyed area (:mod:`pavemap.geo.coverage`) are ``NODATA`` (-9999),
+so "not looked at" never reads as "no defect".
 
-- Without a geo origin the transform maps pixels to world x, y metres (no CRS: a local
-  engineering frame, stated in the tags).
-- With a geo origin the CRS is the azimuthal equidistant projection centred on the origin
-  (see ``geo.py``) and the raster is north-up in east/north metres. When world +x is not east
-  (heading != 90) the map is resampled (bilinear) onto a north-up east/north grid of the same
-  resolution, because rotated geotransforms are poorly supported by GIS tools.
+- With a geo origin the raster is in the drive's UTM zone (or the CRS asked for,
+  :func:`pavemap.geo.crs.output_crs`), north-up: the BEV map is resampled (bilinear) onto it, with
+  pixels of about the map's resolution. Over a survey of a few km the world -> UTM mapping is
+  affine to a millimetre, so the resampling uses that affine (checked; else exact per pixel).
+- Without one the transform maps pixels to world x, y metres and the CRS is the local engineering
+  CRS (``ENGCRS``) of :func:`pavemap.geo.crs.local_crs`: never read as longitude / latitude.
 """
 
 from __future__ import annotations
@@ -25,15 +26,18 @@ from typing import Any
 import numpy as np
 import rasterio
 import rasterio.enums
+from pyproj import CRS, Transformer
 from rasterio.transform import Affine
 from scipy import ndimage
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import local_tangent, origin_to_dict
+from pavemap.export.geo import WGS84, local_tangent, origin_to_dict
+from pavemap.geo.crs import crs_label, output_crs
 from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_path
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, GeoOrigin
 
+NODATA = -9999.0  # outside the surveyed area; probabilities are in [0, 1]
 BAND_DESCRIPTIONS = ("total defect probability",
                      *(f"{c} {DEFECT_NAMES[c]} probability" for c in DEFECT_CODES))
 
@@ -73,63 +77,103 @@ def stack_bands(prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec) ->
     return np.nan_to_num(bands, nan=0.0, posinf=1.0, neginf=0.0)
 
 
-def north_up(bands: np.ndarray, grid: GridSpec, geo_origin: GeoOrigin | None = None) -> tuple[np.ndarray, Affine]:
-    """Rasterise BEV bands north-up.
+def north_up(bands: np.ndarray, grid: GridSpec) -> tuple[np.ndarray, Affine]:
+    """Local frame: ``bands`` (B, H, W) rows going +y -> rows from the top, and the affine transform
+    (pixel corner convention) to world x, y metres."""
+    x0, y0, res, H, W = check_grid(grid, bands.shape, "BEV map grid")
+    # cell (row r, col c) centre is (x0 + c res, y0 + r res); the top raster row is r = H-1
+    out = np.ascontiguousarray(bands[:, ::-1, :])
+    return out, Affine(res, 0.0, x0 - res / 2, 0.0, -res, y0 + (H - 1) * res + res / 2)
 
-    ``bands`` (B, H, W) rows going +y. Returns (B, H', W') with row 0 at the top and the affine
-    transform (pixel corner convention) to world metres (no origin) or to the origin's
-    east/north metres (with origin).
+
+def _world_affine(lt, to_crs: Transformer, grid: GridSpec) -> tuple[np.ndarray, float]:  # noqa: ANN001
+    """(3, 2) least-squares affine from target-CRS (e, n, 1) to world (x, y) over the grid, and its
+    largest error in metres on the control points (a UTM zone over a few km is affine to a millimetre)."""
+    xmin, ymin, xmax, ymax = grid.bounds
+    X, Y = np.meshgrid(np.linspace(xmin, xmax, 7), np.linspace(ymin, ymax, 7))
+    lon, lat = lt.to_lonlat(X.ravel(), Y.ravel())
+    e, n = to_crs.transform(lon, lat)
+    A = np.column_stack([e, n, np.ones(len(e))])
+    W = np.column_stack([X.ravel(), Y.ravel()])
+    coef, *_ = np.linalg.lstsq(A, W, rcond=None)
+    return coef, float(np.max(np.linalg.norm(A @ coef - W, axis=1)))
+
+
+def to_crs(bands: np.ndarray, valid: np.ndarray, grid: GridSpec, origin: GeoOrigin, crs: CRS
+           ) -> tuple[np.ndarray, Affine]:
+    """Resample BEV ``bands`` (B, H, W) (rows going +y) onto a north-up raster of ``crs``.
+
+    Cells outside ``valid`` (H, W) or outside the grid become NODATA. Bilinear for the values
+    (nodata cells do not bleed in: a sample needs a valid nearest cell), pixels of about ``grid.res``
+    metres. Returns (B, H', W') float32 and the transform.
     """
     x0, y0, res, H, W = check_grid(grid, bands.shape, "BEV map grid")
-    lt = local_tangent(geo_origin) if geo_origin is not None else None
-    if lt is None or lt.axis_aligned:
-        # cell (row r, col c) centre is (x0 + c res, y0 + r res); the top raster row is r = H-1
-        out = np.ascontiguousarray(bands[:, ::-1, :])
-        return out, Affine(res, 0.0, x0 - res / 2, 0.0, -res, y0 + (H - 1) * res + res / 2)
-    # rotated frame: bound the cell centres in east/north, then sample the source bilinearly
-    cx = x0 + np.array([0, W - 1, 0, W - 1], dtype=np.float64) * res
-    cy = y0 + np.array([0, 0, H - 1, H - 1], dtype=np.float64) * res
-    e, n = lt.world_to_enu(cx, cy)
-    e0, n_top = float(e.min()), float(n.max())
-    We = int(math.floor((e.max() - e0) / res + 1e-9)) + 1
-    Hn = int(math.floor((n_top - n.min()) / res + 1e-9)) + 1
-    ee = e0 + np.arange(We, dtype=np.float64) * res
-    nn = n_top - np.arange(Hn, dtype=np.float64) * res
-    E, N = np.meshgrid(ee, nn)  # (Hn, We)
-    X, Y = lt.enu_to_world(E, N)
-    coords = np.stack([(Y - y0) / res, (X - x0) / res])  # fractional (row, col) in the source
-    out = np.stack([ndimage.map_coordinates(b, coords, order=1, mode="constant", cval=0.0, prefilter=False)
-                    for b in bands]).astype(np.float32)
-    return out, Affine(res, 0.0, e0 - res / 2, 0.0, -res, n_top + res / 2)
+    lt = local_tangent(origin)
+    fwd = Transformer.from_crs(WGS84, crs, always_xy=True)
+    coef, err = _world_affine(lt, fwd, grid)
+    inv = Transformer.from_crs(crs, WGS84, always_xy=True)
+    xmin, ymin, xmax, ymax = grid.bounds
+    lon, lat = lt.to_lonlat(np.array([xmin, xmax, xmin, xmax]), np.array([ymin, ymin, ymax, ymax]))
+    e, n = (np.asarray(v) for v in fwd.transform(lon, lat))
+    # pixels of ``res`` metres of the CRS (in its own unit): aligned with other data of that CRS
+    step = res / float(crs.axis_info[0].unit_conversion_factor or 1.0)
+    e0, n_top = math.floor(e.min() / step) * step, math.ceil(n.max() / step) * step
+    Wo = int(math.ceil((e.max() - e0) / step))
+    Ho = int(math.ceil((n_top - n.min()) / step))
+    out = np.full((bands.shape[0], Ho, Wo), NODATA, dtype=np.float32)
+    ok_src = np.pad(valid, 1, constant_values=False)  # a ring of invalid cells: outside the grid is nodata
+    for r0 in range(0, Ho, 256):
+        rows = np.arange(r0, min(r0 + 256, Ho))
+        E, N = np.meshgrid(e0 + (np.arange(Wo) + 0.5) * step, n_top - (rows + 0.5) * step)
+        if err < 0.01 * res:
+            X, Y = E * coef[0, 0] + N * coef[1, 0] + coef[2, 0], E * coef[0, 1] + N * coef[1, 1] + coef[2, 1]
+        else:  # far from affine (a huge area or an odd CRS): exact per pixel
+            lo, la = inv.transform(E.ravel(), N.ravel())
+            X, Y = (a.reshape(E.shape) for a in lt.from_lonlat(np.asarray(lo), np.asarray(la)))
+        fr, fc = (Y - y0) / res, (X - x0) / res
+        near = ok_src[np.clip(np.rint(fr).astype(np.int64) + 1, 0, H + 1), np.clip(np.rint(fc).astype(np.int64) + 1,
+                                                                                      0, W + 1)]
+        for b in range(bands.shape[0]):
+            v = ndimage.map_coordinates(bands[b], [fr, fc], order=1, mode="nearest", prefilter=False)
+            out[b, rows] = np.where(near, v, NODATA)
+    return out, Affine(step, 0.0, e0, 0.0, -step, n_top)
 
 
 def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec,
-                  geo_origin: GeoOrigin | None = None) -> Path:
+                  geo_origin: GeoOrigin | None = None, *, crs: str = "auto", valid: np.ndarray | None = None,
+                  name: str = "") -> Path:
     """Write ``defect_map.tif`` (COG when GDAL has the driver, else tiled GTiff with overviews).
 
-    ``prob_map`` (H, W) float, ``class_maps`` (4, H, W) float, ``grid`` a GridSpec.
+    ``prob_map`` (H, W) float, ``class_maps`` (4, H, W) float, ``grid`` a GridSpec, ``valid`` (H, W)
+    bool the surveyed cells (others are NODATA; default all). With ``geo_origin`` the raster is in
+    ``crs`` (``auto``: the drive's UTM zone), else in the local engineering CRS of ``name``.
     """
     bands = stack_bands(prob_map, class_maps, grid)
-    data, transform = north_up(bands, grid, geo_origin)
+    g = as_grid(grid)
+    valid = np.ones(g.shape, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if valid.shape != g.shape:
+        raise PavemapError(f"valid mask shape {valid.shape} does not match the map grid {g.shape}")
+    target = output_crs(geo_origin, crs, name)
+    if geo_origin is None:
+        data, transform = north_up(np.where(valid[None], bands, NODATA).astype(np.float32), g)
+    else:
+        data, transform = to_crs(bands, valid, g, geo_origin, target)
     _, h, w = data.shape
-    crs = local_tangent(geo_origin).crs.to_wkt() if geo_origin is not None else None
     with rasterio.Env() as env:
         has_cog = "COG" in env.drivers()
     profile = {"width": w, "height": h, "count": data.shape[0], "dtype": "float32", "transform": transform,
-               "compress": "DEFLATE", "predictor": 3}
-    if crs is not None:
-        profile["crs"] = crs
+               "compress": "DEFLATE", "predictor": 3, "nodata": NODATA, "crs": target.to_wkt()}
     if has_cog:
         profile.update(driver="COG", blocksize=256, overviews="AUTO", resampling="average")
     else:
         profile.update(driver="GTiff", tiled=True, blockxsize=256, blockysize=256)
-    x0, y0, res, H, W = check_grid(grid)
     tags = {
         "PAVEMAP_BANDS": "; ".join(BAND_DESCRIPTIONS),
-        "PAVEMAP_FRAME": ("east/north metres of the azimuthal equidistant projection at the geo origin"
-                          if geo_origin is not None else "local world frame x, y metres (SPEC §0), no CRS"),
-        "PAVEMAP_GRID": f"x0={x0} y0={y0} res={res} shape={H}x{W} (cell centres, rows going +y)",
+        "PAVEMAP_FRAME": (f"{crs_label(target)}, north-up" if geo_origin is not None
+                          else "local world frame x, y metres (SPEC §0): not on the Earth"),
+        "PAVEMAP_GRID": f"x0={g.x0} y0={g.y0} res={g.res} shape={g.ny}x{g.nx} (cell centres, rows going +y)",
         "PAVEMAP_GEO_ORIGIN": str(origin_to_dict(geo_origin)),
+        "PAVEMAP_NODATA": f"{NODATA}: outside the surveyed area (no camera saw it within range)",
     }
     final = Path(path)
     with atomic_path(final) as tmp:
@@ -148,4 +192,4 @@ def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.
     return final
 
 
-__all__ = ["BAND_DESCRIPTIONS", "check_grid", "north_up", "stack_bands", "write_geotiff"]
+__all__ = ["BAND_DESCRIPTIONS", "NODATA", "check_grid", "north_up", "stack_bands", "to_crs", "write_geotiff"]

@@ -126,7 +126,9 @@ TABLE_COLUMNS = (  # key, header, type ("num" | "str"), decimals
 
 
 def _table_rows(props: list[dict], geo: bool) -> tuple[str, str]:
-    cols = list(TABLE_COLUMNS) + ([("lat", "lat", "num", 7), ("lon", "lon", "num", 7)] if geo else [])
+    # lat/lon right after the priority: visible without scrolling the table sideways
+    geo_cols = [("lat", "lat", "num", 7), ("lon", "lon", "num", 7)] if geo else []
+    cols = list(TABLE_COLUMNS[:3]) + geo_cols + list(TABLE_COLUMNS[3:])
     head = "".join(f'<th data-key="{k}" data-type="{t}">{_esc(h)}<span class="arrow"></span></th>'
                    for k, h, t, _ in cols)
     order = sorted(props, key=lambda p: (PRIORITY_RANK.get(p["priority"], 9), -(p["severity"] or 0), p["id"]))
@@ -271,6 +273,10 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
     cfg_json = _esc(json.dumps(config or {}, indent=2, default=str))
     geo_txt = ("local world metres (no geo origin)" if geo_origin is None else
                f"WGS84 via origin {geo_origin.lat:.7f}, {geo_origin.lon:.7f}, heading {geo_origin.heading_deg:g}°")
+    fit = (geo_origin.georef or {}) if geo_origin is not None else {}
+    if fit.get("rms_m") is not None:
+        geo_txt += (f", fitted to GPS {Path(str(fit.get('source', ''))).name}: residual RMS {fit['rms_m']:.2f} m over "
+                    f"{fit.get('inliers')} of {fit.get('fixes')} fixes")
     file_list = "".join(f'<li><a href="{_esc(Path(p).name)}">{_esc(Path(p).name)}</a> — {_esc(k)}</li>'
                         for k, p in (files or {}).items())
     files_html = f"<ul>{file_list}</ul>" if file_list else ""
@@ -288,7 +294,7 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
 <body>
 <header><h1>{_esc(title)}</h1><div class="sub">{_esc(sub)}</div></header>
 <main>
-<section id="summary"><h2>Summary</h2><div class="cards">{cards_html}</div>{notice}
+{_geometry_banner(metrics)}<section id="summary"><h2>Summary</h2><div class="cards">{cards_html}</div>{notice}
 <div class="kvgrid">{summary_tables}</div>{all_metrics}</section>
 <div class="split">
 <section id="map-section"><h2>Defect map</h2>
@@ -313,6 +319,20 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
 <script>{JS}</script>
 </body></html>
 """
+
+
+def _geometry_banner(metrics: dict | None) -> str:
+    """A visible banner with the run's geometry warnings (stage 1's self-check, issue 12); empty when none."""
+    geo = ((metrics or {}).get("mesh") or {}).get("geometry") or (metrics or {}).get("geometry") or {}
+    warns = geo.get("warnings") or []
+    if not warns:
+        return ""
+    bad = geo.get("trustworthy") is False
+    head = "Road surface not trustworthy" if bad else "Road surface: warnings"
+    colour = "#b71c1c" if bad else "#8a6d00"
+    items = "".join(f"<li>{_esc(w)}</li>" for w in warns)
+    return (f'<div id="geometry-warning" role="alert" style="border:2px solid {colour};background:#fff4f2;'
+            f'padding:8px 12px;margin:0 0 12px"><b style="color:{colour}">{head}</b><ul>{items}</ul></div>')
 
 
 def write_report(out_dir: str | os.PathLike, instances: list[DefectInstance], **kwargs) -> Path:

@@ -29,7 +29,7 @@ from pavemap.geometry.grid import GridSpec
 from pavemap.types import DEFECT_CODES, NUM_DEFECT_CLASSES, DefectInstance, Detection, Sequence
 
 # Filter outcomes that are not "unusable input" (every other reason counts as invalid).
-_FILTER_OUTCOMES = ("kept", "low_conf", "off_road")
+_FILTER_OUTCOMES = ("kept", "low_conf", "off_road", "paint", "ego")  # paint / ego: pavemap.detect.paint
 
 
 class Filtered(Protocol):
@@ -322,6 +322,8 @@ def paper_metrics(records: list[dict], defect: np.ndarray, n_valid: int, nobs: n
         "invalid_detections": sum(invalid.values()),
         "invalid_by_reason": invalid,
         "below_conf": reasons.get("low_conf", 0),
+        "on_paint": reasons.get("paint", 0),  # on-road boxes lane paint spans (filter.tau_paint)
+        "on_ego": reasons.get("ego", 0),  # boxes on the camera's ego mask (the bonnet)
         "total_detections": total,
         "filtered_detections": reasons.get("off_road", 0),
         "valid_detections": len(kept),

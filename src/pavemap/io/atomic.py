@@ -18,9 +18,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, final)
+    except OSError as e:  # name the file the user asked for, not the temporary (a write error has no name)
+        if e.filename in (None, str(tmp), tmp):
+            raise OSError(e.errno, e.strerror or str(e), str(final)) from None
+        raise
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        with contextlib.suppress(OSError):
+            if tmp.exists():
+                tmp.unlink()
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

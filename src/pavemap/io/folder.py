@@ -33,7 +33,9 @@ import numpy as np
 from PIL import Image
 
 from pavemap.errors import PavemapError
+from pavemap.geo.attach import GeoInput, attach_geo
 from pavemap.io.atomic import atomic_path
+from pavemap.io.egomask import resolve_ego_mask, store_ego_masks
 from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, write_sequence
 from pavemap.palette import PAVEMAP_CLASSES
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
@@ -228,9 +230,16 @@ def import_folder(
     out: str | os.PathLike,
     name: str | None = None,
     camera_height: float = 1.5,
-    classes: list[SemanticClass] | None = None,
+    classes: list[SemanticClass] | None = None, geo: GeoInput | None = None,
+    ego_mask: str | os.PathLike | None = None,
+    refine_intrinsics: bool = False,
 ) -> Sequence:
-    """Import an own drive: images + cameras.json + poses.csv (or ``poses="sfm"``) → sequence folder."""
+    """Import an own drive: images + cameras.json + poses.csv (or ``poses="sfm"``) → sequence folder.
+
+    ``ego_mask``: "auto" (found in the images; the default with ``poses="sfm"``), "none", or a mask image
+    (white = ego vehicle); stored as ``masks/<camera>.png``. ``refine_intrinsics``: SfM refines the
+    nominal focal length and principal point (written to the sequence's camera). ``geo``: GPS or a
+    hand-given origin (:mod:`pavemap.geo.attach`); lat/lon columns of poses.csv are GPS too."""
     from tqdm import tqdm
 
     images_dir, out = Path(images_dir), Path(out)
@@ -243,7 +252,12 @@ def import_folder(
         cam = next(iter(cameras.values()))
         from pavemap.io.sfm import sfm_poses
 
-        res = sfm_poses(per_cam[cam.name], cam, camera_height=camera_height)
+        ego, _ = resolve_ego_mask(ego_mask, per_cam[cam.name], cam.width, cam.height, default_auto=True)
+        res = sfm_poses(per_cam[cam.name], cam, camera_height=camera_height, ego_mask=ego,
+                        refine_intrinsics=refine_intrinsics)
+        if refine_intrinsics and res.K is not None:
+            cam.K = res.K
+        egos = {cam.name: ego}
         # frames SfM could not register are left out (logged by sfm_poses); image names kept explicit
         rows = [
             PoseRow(i, cam.name, None, str(per_cam[cam.name][i].relative_to(images_dir)), res.T_world_cam[i])
@@ -251,6 +265,8 @@ def import_folder(
         ]
     else:
         rows = read_poses_csv(poses)
+        egos = {c.name: resolve_ego_mask(ego_mask, per_cam[c.name], c.width, c.height, default_auto=False)[0]
+                for c in cameras.values()} if ego_mask is not None else {}
 
     poses_file = Path(str(poses))
     by_cam: dict[str, list[PoseRow]] = {c: [] for c in cameras}
@@ -293,6 +309,8 @@ def import_folder(
         name or images_dir.resolve().name, list(classes or DEFAULT_CLASSES), cameras,
         [frames[i] for i in sorted(frames)],
     )
+    attach_geo(seq, geo, poses=poses, root=out)  # GPS (--gps, poses.csv lat/lon, EXIF) or --geo-origin
+    store_ego_masks(cameras, egos, out)
     write_sequence(seq, out)
     return seq
 
@@ -383,7 +401,7 @@ def import_video(
     stop: float | None = None,
     max_frames: int | None = None,
     camera_height: float = 1.5,
-    name: str | None = None,
+    name: str | None = None, geo: GeoInput | None = None,
 ) -> Sequence:
     """Import a video of one camera: frames at ``fps``; poses from a CSV (timestamped rows are
     interpolated to the frame times, else one row per extracted frame) or ``"sfm"``."""
@@ -397,10 +415,12 @@ def import_video(
     if (w, h) != (cam.width, cam.height):
         raise SequenceError(video, f"frames are {w}x{h}, cameras.json says {cam.name} is {cam.width}x{cam.height}")
     times = np.asarray(stamps)
+    ego = None
     if str(poses).lower() == "sfm":
         from pavemap.io.sfm import sfm_poses
 
-        res = sfm_poses(paths, cam, camera_height=camera_height)
+        ego, _ = resolve_ego_mask(None, paths, cam.width, cam.height, default_auto=True)  # bonnet: kept out of SfM
+        res = sfm_poses(paths, cam, camera_height=camera_height, ego_mask=ego)
         Ts = res.T_world_cam
         for i in np.nonzero(~res.registered)[0]:  # frames SfM could not register are dropped
             paths[i].unlink(missing_ok=True)
@@ -421,5 +441,7 @@ def import_video(
         if np.isfinite(Ts[i]).all()
     ]
     seq = Sequence(name or video.stem, list(DEFAULT_CLASSES), {cam.name: cam}, frames)
+    attach_geo(seq, geo, poses=poses, per_frame=False)
+    store_ego_masks({cam.name: cam}, {cam.name: ego}, out)  # the bonnet found for SfM: masks/<camera>.png
     write_sequence(seq, out)
     return seq

@@ -36,11 +36,20 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
+from pavemap.geo.attach import GeoInput, attach_geo
 from pavemap.io.atomic import atomic_path
 from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, list_images
 from pavemap.io.sequence import SequenceError, check_intrinsics, save_depth, write_sequence
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
+#: Odometry sequence -> (raw drive, raw frame of odometry frame 0), from the odometry devkit's readme:
+#: the OXTS (GPS/IMU) records of ``--oxts`` are the raw drive's, offset by that frame.
+KITTI_RAW: dict[str, tuple[str, int]] = {
+    "00": ("2011_10_03_drive_0027", 0), "01": ("2011_10_03_drive_0042", 0), "02": ("2011_10_03_drive_0034", 0),
+    "03": ("2011_09_26_drive_0067", 0), "04": ("2011_09_30_drive_0016", 0), "05": ("2011_09_30_drive_0018", 0),
+    "06": ("2011_09_30_drive_0020", 0), "07": ("2011_09_30_drive_0027", 0), "08": ("2011_09_30_drive_0028", 1100),
+    "09": ("2011_09_30_drive_0033", 0), "10": ("2011_09_30_drive_0034", 0),
+}
 #: KITTI camera frame (x right, y down, z forward) → pavemap world (x forward, y left, z up).
 A_KITTI_TO_WORLD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -188,8 +197,12 @@ def import_kitti(
     stride: int = 1,
     lidar: bool = True,
     classes: list[SemanticClass] | None = None,
+    geo: GeoInput | None = None,
 ) -> Sequence:
-    """KITTI odometry sequence → sequence folder at ``out`` (frames ``start:stop:stride``)."""
+    """KITTI odometry sequence → sequence folder at ``out`` (frames ``start:stop:stride``).
+
+    ``geo``: ``gps`` a raw drive's OXTS folder (``oxts_first`` defaults to :data:`KITTI_RAW`'s offset)
+    or a GPS file, or a hand-given origin (:mod:`pavemap.geo.attach`)."""
     from tqdm import tqdm
 
     root, out = Path(root), Path(out)
@@ -252,5 +265,8 @@ def import_kitti(
                     save_depth(tmp, d)
         frames.append(Frame(int(i), float(times[i]), {name: View(name, rel, T_world[k], None, depth_rel)}))
     seq = Sequence(f"kitti-{sequence}", list(classes or DEFAULT_CLASSES), {name: cam}, frames)
+    if geo is not None and geo.oxts_first is None and sequence in KITTI_RAW:
+        geo.oxts_first = KITTI_RAW[sequence][1]
+    attach_geo(seq, geo)
     write_sequence(seq, out)
     return seq

@@ -17,6 +17,7 @@ from PIL import Image
 
 from pavemap.errors import SequenceError
 from pavemap.io.atomic import atomic_write_json
+from pavemap.io.schema import check_detection, check_sequence, decode_utf8, issues_text, load_json, parse_json
 from pavemap.types import (
     NUM_DEFECT_CLASSES,
     Camera,
@@ -45,16 +46,6 @@ class Problem:
 
 
 # ---------------------------------------------------------------------------- parsing
-
-
-def _matrix(value: object, shape: tuple[int, int], where: str, file: Path) -> np.ndarray:
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise SequenceError(file, f"{where} is not a numeric matrix ({e})") from None
-    if m.shape != shape:
-        raise SequenceError(file, f"{where} must be {shape[0]}x{shape[1]}, got shape {list(m.shape)}")
-    return m
 
 
 def check_intrinsics(K: np.ndarray) -> str | None:
@@ -90,101 +81,67 @@ def check_pose(T: np.ndarray, tol: float = 1e-4) -> str | None:
     return None
 
 
-def sequence_from_dict(d: dict, root: Path | None = None) -> Sequence:
-    """Build a Sequence from the parsed ``sequence.json``; structural errors raise SequenceError."""
+def sequence_from_dict(d: object, root: Path | None = None) -> Sequence:
+    """Build a Sequence from the parsed ``sequence.json``.
+
+    The schema (:mod:`pavemap.io.schema`) checks types, finite numbers, shapes and lengths first; then
+    the meaning: K a pinhole matrix, poses rigid, class ids unique, views of known cameras, frame
+    indices increasing. Any problem raises SequenceError naming the JSON path.
+    """
     file = (root / SEQUENCE_FILE) if root is not None else Path(SEQUENCE_FILE)
-    if not isinstance(d, dict):
-        raise SequenceError(file, "top level must be a JSON object")
-    fmt = d.get("format")
-    if fmt != FORMAT:
-        raise SequenceError(file, f"'format' must be {FORMAT!r}, got {fmt!r}")
-    for key in ("name", "classes", "cameras", "frames"):
-        if key not in d:
-            raise SequenceError(file, f"missing key {key!r}")
+    if isinstance(d, dict) and d.get("format") != FORMAT:  # the most useful message for a foreign file
+        raise SequenceError(file, f"'format' must be {FORMAT!r}, got {d.get('format')!r}")
+    issues = check_sequence(d)
+    if issues:
+        raise SequenceError(file, issues_text(issues))
+    assert isinstance(d, dict)
 
     classes = []
     seen_ids: set[int] = set()
     for i, c in enumerate(d["classes"]):
-        try:
-            cid = int(c["id"])
-            sc = SemanticClass(
-                id=cid,
-                name=str(c["name"]),
-                road=bool(c.get("road", False)),
-                movable=bool(c.get("movable", False)),
-                sky=bool(c.get("sky", False)),
-            )
-        except (KeyError, TypeError, ValueError) as e:
-            raise SequenceError(file, f"classes[{i}] needs 'id' and 'name' ({e})") from None
-        if not 0 <= cid <= 255:
-            raise SequenceError(file, f"classes[{i}] id {cid} outside 0..255 (labels are uint8)")
+        cid = int(c["id"])
         if cid in seen_ids:
-            raise SequenceError(file, f"classes[{i}] repeats id {cid}")
+            raise SequenceError(file, f"classes[{i}].id: repeats id {cid}")
         seen_ids.add(cid)
-        classes.append(sc)
+        classes.append(SemanticClass(cid, c["name"], road=c.get("road", False), movable=c.get("movable", False),
+                                     sky=c.get("sky", False)))
 
     cameras: dict[str, Camera] = {}
-    if not isinstance(d["cameras"], dict) or not d["cameras"]:
-        raise SequenceError(file, "'cameras' must be a non-empty object of name -> camera")
     for name, c in d["cameras"].items():
-        where = f"cameras.{name}"
-        try:
-            w, h = int(c["width"]), int(c["height"])
-        except (KeyError, TypeError, ValueError):
-            raise SequenceError(file, f"{where} needs integer 'width' and 'height'") from None
-        if w <= 0 or h <= 0:
-            raise SequenceError(file, f"{where} has non-positive size {w}x{h}")
-        K = np.asarray(c.get("K"), dtype=np.float64) if c.get("K") is not None else np.zeros(0)
+        K = np.asarray(c["K"], dtype=np.float64)
         why = check_intrinsics(K)
         if why:
-            raise SequenceError(file, f"{where}: {why}")
-        cameras[name] = Camera(name, w, h, K)
+            raise SequenceError(file, f"cameras.{name}.K: {why}")
+        cameras[name] = Camera(name, int(c["width"]), int(c["height"]), K, c.get("ego_mask"))
 
     frames: list[Frame] = []
     last_index: int | None = None
     for fi, f in enumerate(d["frames"]):
         where = f"frames[{fi}]"
-        try:
-            index = int(f["index"])
-        except (KeyError, TypeError, ValueError):
-            raise SequenceError(file, f"{where} needs an integer 'index'") from None
+        index = int(f["index"])
         if last_index is not None and index == last_index:
-            raise SequenceError(file, f"{where} repeats frame index {index}")
+            raise SequenceError(file, f"{where}.index: repeats frame index {index}")
         if last_index is not None and index < last_index:
-            raise SequenceError(file, f"{where} index {index} decreases (previous {last_index})")
+            raise SequenceError(file, f"{where}.index: {index} decreases (previous {last_index})")
         last_index = index
-        ts = float(f.get("timestamp", float(index)))
         views: dict[str, View] = {}
-        for cam, v in (f.get("views") or {}).items():
+        for cam, v in f["views"].items():
             vwhere = f"{where}.views.{cam}"
             if cam not in cameras:
                 raise SequenceError(file, f"{vwhere}: unknown camera {cam!r}; cameras are {sorted(cameras)}")
-            if "image" not in v:
-                raise SequenceError(file, f"{vwhere} has no 'image'")
-            T = _matrix(v.get("T_world_cam"), (4, 4), f"{vwhere}.T_world_cam", file)
+            T = np.asarray(v["T_world_cam"], dtype=np.float64)
             why = check_pose(T)
             if why:
-                raise SequenceError(file, f"{vwhere}: {why}")
-            views[cam] = View(cam, str(v["image"]), T, v.get("semantics"), v.get("depth"))
-        if not views:
-            raise SequenceError(file, f"{where} has no views")
-        frames.append(Frame(index, ts, views))
+                raise SequenceError(file, f"{vwhere}.T_world_cam: {why}")
+            views[cam] = View(cam, v["image"], T, v.get("semantics"), v.get("depth"))
+        frames.append(Frame(index, float(f.get("timestamp", float(index))), views))
 
-    geo = d.get("geo_origin")
-    geo_origin = None
+    geo, geo_origin = d.get("geo_origin"), None
     if geo is not None:
-        try:
-            geo_origin = GeoOrigin(
-                lat=float(geo["lat"]),
-                lon=float(geo["lon"]),
-                alt=float(geo.get("alt", 0.0)),
-                heading_deg=float(geo.get("heading_deg", 90.0)),
-            )
-        except (KeyError, TypeError, ValueError):
-            raise SequenceError(file, "geo_origin needs numeric 'lat' and 'lon'") from None
-        if not (-90 <= geo_origin.lat <= 90 and -180 <= geo_origin.lon <= 180):
-            raise SequenceError(file, f"geo_origin lat/lon out of range: {geo_origin.lat}, {geo_origin.lon}")
-    return Sequence(str(d["name"]), classes, cameras, frames, geo_origin, root)
+        geo_origin = GeoOrigin(lat=float(geo["lat"]), lon=float(geo["lon"]), alt=float(geo.get("alt", 0.0)),
+                               heading_deg=float(geo.get("heading_deg", 90.0)),
+                               georef=geo["georef"] if isinstance(geo.get("georef"), dict) else None)
+    return Sequence(d["name"], classes, cameras, frames, geo_origin, root)
 
 
 def sequence_to_dict(seq: Sequence) -> dict:
@@ -198,13 +155,15 @@ def sequence_to_dict(seq: Sequence) -> dict:
             "lon": seq.geo_origin.lon,
             "alt": seq.geo_origin.alt,
             "heading_deg": seq.geo_origin.heading_deg,
+            **({"georef": seq.geo_origin.georef} if seq.geo_origin.georef else {}),  # how it was fitted (GPS)
         },
         "classes": [
             {"id": c.id, "name": c.name, "road": c.road, "movable": c.movable, "sky": c.sky}
             for c in seq.classes
         ],
         "cameras": {
-            n: {"width": c.width, "height": c.height, "K": np.asarray(c.K, dtype=float).tolist()}
+            n: {"width": c.width, "height": c.height, "K": np.asarray(c.K, dtype=float).tolist(),
+                **({"ego_mask": c.ego_mask} if c.ego_mask else {})}  # masks/<camera>.png, 255 = ego vehicle
             for n, c in seq.cameras.items()
         },
         "frames": [
@@ -235,17 +194,13 @@ def read_sequence(root: str | os.PathLike, validate: bool = True) -> Sequence:
     file = root / SEQUENCE_FILE
     try:
         is_dir = root.is_dir()
-    except OSError as e:  # e.g. a name too long for the file system
-        raise SequenceError(root, f"cannot be read as a folder ({e.strerror})") from None
+    except (OSError, ValueError) as e:  # a name too long for the file system, a NUL byte
+        raise SequenceError(root, f"cannot be read as a folder ({getattr(e, 'strerror', None) or e})") from None
     if not is_dir:
         raise SequenceError(root, "is not a folder (expected a sequence folder holding sequence.json)")
     if not file.is_file():
         raise SequenceError(file, "not found; is this a pavemap sequence folder? (see README: sequence folder)")
-    try:
-        d = json.loads(file.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise SequenceError(file, f"invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
-    seq = sequence_from_dict(d, root)
+    seq = sequence_from_dict(load_json(file), root)
     if validate:
         problems = validate_sequence(seq)
         if problems:
@@ -269,10 +224,57 @@ def write_sequence(seq: Sequence, root: str | os.PathLike | None = None) -> Path
     return atomic_write_json(root / SEQUENCE_FILE, sequence_to_dict(seq))
 
 
-def validate_sequence(seq: Sequence, check_images: bool = True, max_problems: int = 50) -> list[Problem]:
-    """Check the files a sequence refers to. Returns problems (file, message); empty when valid."""
+#: PIL modes a layer may have: semantics are 8-bit class ids (16-bit accepted when ids stay <= 255),
+#: depth is 16-bit millimetres.
+SEMANTIC_MODES = ("L", "P", "I", "I;16", "I;16B", "I;16L")
+DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I")
+#: Below this largest depth (millimetres) a depth map is not plausible: metres stored as integers, or
+#: an 8-bit map scaled up, would put every point within a metre of the camera.
+MIN_PLAUSIBLE_DEPTH_MM = 1000
+_IMAGE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
+
+
+def _layer_problem(kind: str, mode: str) -> str | None:
+    """Why an image of PIL ``mode`` cannot be layer ``kind`` (from its header alone), or None."""
+    if kind == "semantics" and mode not in SEMANTIC_MODES:
+        return f"semantic map must be a single-channel PNG of class ids, got mode {mode}"
+    if kind == "depth" and mode not in DEPTH_MODES:
+        bits = " (8-bit)" if mode in ("L", "P", "1") else ""
+        return f"depth map must be a 16-bit single-channel PNG (uint16 millimetres), got mode {mode}{bits}"
+    return None
+
+
+def _deep_problem(kind: str, im: Image.Image, class_ids: set[int]) -> str | None:
+    """Decode the whole image (a truncated file fails here, not at its header) and check its values."""
+    im.load()
+    if kind == "semantics":
+        a = np.asarray(im)
+        ids = set(np.unique(a).tolist())
+        if max(ids, default=0) > 255:
+            return "semantic ids above 255"
+        unknown = sorted(ids - class_ids)
+        if unknown and len(unknown) == len(ids):
+            return f"no pixel holds a class id of the sequence's classes (ids found: {unknown[:8]})"
+    if kind == "depth":
+        a = np.asarray(im).astype(np.int64)
+        top = int(a.max(initial=0))
+        if 0 < top < MIN_PLAUSIBLE_DEPTH_MM:
+            return (f"depth values reach only {top} mm: depth maps are uint16 millimetres (0 = unknown); "
+                    "metres or an 8-bit map scaled up?")
+    return None
+
+
+def validate_sequence(seq: Sequence, check_images: bool = True, max_problems: int = 50,
+                      deep: bool = False) -> list[Problem]:
+    """Check the files a sequence refers to. Returns problems (file, message); empty when valid.
+
+    Always: files exist; with ``check_images``, each image's header (size, and the layer's mode:
+    semantics single-channel, depth 16-bit). With ``deep`` (``pavemap info``), also decode every
+    image in full and check values: semantic ids from the class table, depth in a plausible range.
+    """
     assert seq.root is not None
     problems: list[Problem] = []
+    class_ids = {c.id for c in seq.classes}
 
     def add(file: str | Path, msg: str) -> bool:
         problems.append(Problem(str(file), msg))
@@ -285,7 +287,7 @@ def validate_sequence(seq: Sequence, check_images: bool = True, max_problems: in
                 if rel is None:
                     continue
                 p = seq.root / rel
-                if not p.is_file():
+                if not _is_file(p):
                     if add(p, f"{kind} missing (frame {f.index}, camera {cam})"):
                         return problems
                     continue
@@ -294,14 +296,17 @@ def validate_sequence(seq: Sequence, check_images: bool = True, max_problems: in
                 try:
                     with Image.open(p) as im:
                         size = im.size
-                except OSError as e:
+                        why = _layer_problem(kind, im.mode)
+                        if why is None and size == (c.width, c.height) and deep:
+                            why = _deep_problem(kind, im, class_ids)
+                except _IMAGE_ERRORS as e:
                     if add(p, f"unreadable {kind} ({e})"):
                         return problems
                     continue
                 if size != (c.width, c.height):
-                    msg = f"{kind} is {size[0]}x{size[1]}, camera {cam} is {c.width}x{c.height}"
-                    if add(p, msg):
-                        return problems
+                    why = f"{kind} is {size[0]}x{size[1]}, camera {cam} is {c.width}x{c.height}"
+                if why and add(p, why):
+                    return problems
     det_file = seq.root / DETECTIONS_FILE
     if det_file.is_file():
         try:
@@ -309,6 +314,13 @@ def validate_sequence(seq: Sequence, check_images: bool = True, max_problems: in
         except SequenceError as e:
             add(e.file, e.problem)
     return problems
+
+
+def _is_file(p: Path) -> bool:
+    try:
+        return p.is_file()
+    except OSError:  # a name too long for the file system: not a file we can read either
+        return False
 
 
 # ---------------------------------------------------------------------------- layers
@@ -319,7 +331,7 @@ def load_rgb(path: str | os.PathLike) -> np.ndarray:
     try:
         with Image.open(path) as im:
             return np.asarray(im.convert("RGB"))
-    except (OSError, ValueError) as e:
+    except _IMAGE_ERRORS as e:
         raise SequenceError(path, f"cannot read image ({e})") from None
 
 
@@ -327,14 +339,17 @@ def load_semantics(path: str | os.PathLike) -> np.ndarray:
     """(H, W) uint8 class ids."""
     try:
         with Image.open(path) as im:
-            if im.mode not in ("L", "P", "I", "I;16"):
-                raise SequenceError(path, f"semantic map must be a single-channel PNG, got mode {im.mode}")
+            why = _layer_problem("semantics", im.mode)
+            if why:
+                raise SequenceError(path, why)
             a = np.asarray(im)
-    except OSError as e:
+    except SequenceError:
+        raise
+    except _IMAGE_ERRORS as e:
         raise SequenceError(path, f"cannot read semantic map ({e})") from None
     if a.dtype != np.uint8:
-        if a.max(initial=0) > 255:
-            raise SequenceError(path, "semantic ids above 255")
+        if a.max(initial=0) > 255 or a.min(initial=0) < 0:
+            raise SequenceError(path, "semantic ids outside 0..255")
         a = a.astype(np.uint8)
     return a
 
@@ -343,8 +358,13 @@ def load_depth(path: str | os.PathLike) -> np.ndarray:
     """(H, W) float32 metres, 0 = unknown (stored as uint16 millimetres)."""
     try:
         with Image.open(path) as im:
+            why = _layer_problem("depth", im.mode)
+            if why:
+                raise SequenceError(path, why)
             a = np.asarray(im)
-    except OSError as e:
+    except SequenceError:
+        raise
+    except _IMAGE_ERRORS as e:
         raise SequenceError(path, f"cannot read depth map ({e})") from None
     return a.astype(np.float32) / 1000.0
 
@@ -358,7 +378,8 @@ def save_depth(path: str | os.PathLike, depth_m: np.ndarray) -> None:
 
 
 def read_detections(path: str | os.PathLike) -> list[Detection]:
-    """Read ``detections.jsonl``. Malformed lines and unknown class ids raise, naming file and line.
+    """Read ``detections.jsonl``. A line that breaks the schema (:data:`pavemap.io.schema.DETECTION`)
+    or names an unknown class id raises SequenceError naming the file, the line and the field.
 
     Values that are well-formed but unusable (boxes outside the image, NaN confidence, a
     frame that does not exist) are the filter's business: it skips and counts them.
@@ -366,31 +387,29 @@ def read_detections(path: str | os.PathLike) -> list[Detection]:
     path = Path(path)
     dets: list[Detection] = []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        data = path.read_bytes()
     except OSError as e:
-        raise SequenceError(path, f"cannot read detections ({e})") from None
-    for ln, line in enumerate(lines, 1):
+        raise SequenceError(path, f"cannot read detections ({e.strerror or e})") from None
+    for ln, line in enumerate(decode_utf8(data, path).split("\n"), 1):
         if not line.strip():
             continue
-        try:
-            d = json.loads(line)
-            box = tuple(float(x) for x in d["box"])
-            if len(box) != 4:
-                raise ValueError("box must have 4 numbers x1, y1, x2, y2")
-            cls = int(d["cls"])
-            conf = float(d["conf"])
-            det = Detection(int(d["frame"]), str(d["camera"]), box, cls, conf)  # type: ignore[arg-type]
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-            raise SequenceError(path, f"line {ln}: not a detection record ({e})") from None
+        d = parse_json(line, path, f"line {ln}: ")
+        issues = check_detection(d)
+        if issues:
+            raise SequenceError(path, f"line {ln}: not a detection record: {issues_text(issues)}")
+        assert isinstance(d, dict)
+        cls = int(d["cls"])
         if not 0 <= cls < NUM_DEFECT_CLASSES:
-            raise SequenceError(path, f"line {ln}: unknown class id {cls} (valid: 0 D00, 1 D10, 2 D20, 3 D40)")
-        dets.append(det)
+            raise SequenceError(path, f"line {ln}: cls: unknown class id {cls} (valid: 0 D00, 1 D10, 2 D20, 3 D40)")
+        box = tuple(float(x) for x in d["box"])
+        dets.append(Detection(int(d["frame"]), d["camera"], box, cls, float(d["conf"])))  # type: ignore[arg-type]
     return dets
 
 
 def write_detections(path: str | os.PathLike, detections: list[Detection], extra: list[dict] | None = None) -> Path:
     """Write detections as JSONL (atomically). ``extra`` adds per-line fields (e.g. a backend's ids)."""
     from pavemap.io.atomic import atomic_write_text
+    from pavemap.io.owned import note_written
 
     out = []
     for i, d in enumerate(detections):
@@ -404,4 +423,6 @@ def write_detections(path: str | os.PathLike, detections: list[Detection], extra
         if extra is not None:
             rec.update(extra[i])
         out.append(json.dumps(rec))
-    return atomic_write_text(path, "\n".join(out) + ("\n" if out else ""))
+    written = atomic_write_text(path, "\n".join(out) + ("\n" if out else ""))
+    note_written(written)  # into a sequence folder pavemap wrote: one of its files now
+    return written

@@ -1,7 +1,12 @@
 """Stage-1 checkpoint: ``OUT/checkpoint.pt`` after every epoch, and resuming from it.
 
 A checkpoint resumes only the run it belongs to: same grid and crop, same class table, same number of
-pose groups; anything else starts afresh (with a warning from the caller).
+pose groups, and the same settings (every MeshConfig field but ``epochs`` and ``resume``; a checkpoint
+already past the configured epochs does not match either); anything else starts afresh (with a warning
+from the caller). More epochs than the checkpoint's continue its training (``pavemap reconstruct
+--resume``), which is not the mesh an uninterrupted run of that length gives (the learning-rate
+schedule spans the run): ``pavemap run`` therefore resumes only an interrupted stage of identical
+settings (:mod:`pavemap.run_folder`).
 """
 
 from __future__ import annotations
@@ -42,12 +47,29 @@ def save_checkpoint(path: Path, model: RoadMeshModel, opt: MultiOptimizer, delta
         torch.save(state, tmp)
 
 
-def load_checkpoint(path: Path, grid: MeshGrid, num_classes: int, num_groups: int, device: torch.device
-                    ) -> dict | None:
-    """The checkpoint's state when it belongs to this grid / class table / pose groups, else None."""
+#: MeshConfig fields a checkpoint may differ in and still resume.
+RESUMABLE_CHANGES = ("epochs", "resume")
+
+
+def settings_match(saved: object, cfg: MeshConfig) -> bool:
+    """Whether a checkpoint's saved config (a dict) has the settings of ``cfg`` (RESUMABLE_CHANGES aside)."""
+    if not isinstance(saved, dict):
+        return False
+    now = cfg.to_dict()
+    return all(saved.get(k) == v for k, v in now.items() if k not in RESUMABLE_CHANGES)
+
+
+def load_checkpoint(path: Path, grid: MeshGrid, num_classes: int, num_groups: int, device: torch.device,
+                    cfg: MeshConfig | None = None) -> dict | None:
+    """The checkpoint's state when it belongs to this grid / class table / pose groups (and, given ``cfg``,
+    these settings, no more epochs done than ``cfg.epochs``), else None."""
     try:
         state = torch.load(path, map_location=device, weights_only=False)
     except Exception:  # noqa: BLE001 - a corrupt checkpoint is just not resumable
+        return None
+    if not isinstance(state, dict) or not isinstance(state.get("model"), dict):
+        return None
+    if cfg is not None and (not settings_match(state.get("config"), cfg) or int(state.get("epoch", 0)) > cfg.epochs):
         return None
     g, spec = state.get("grid", {}), grid.spec
     same = (abs(g.get("x0", 1e18) - spec.x0) < 1e-9 and abs(g.get("y0", 1e18) - spec.y0) < 1e-9
@@ -61,14 +83,14 @@ def load_checkpoint(path: Path, grid: MeshGrid, num_classes: int, num_groups: in
 
 
 def resume(out_dir: Path, model: RoadMeshModel, opt: MultiOptimizer, gen: torch.Generator, num_groups: int,
-           device: torch.device) -> tuple[Resumed, torch.Tensor | None] | None:
+           device: torch.device, cfg: MeshConfig | None = None) -> tuple[Resumed, torch.Tensor | None] | None:
     """Load ``out_dir/checkpoint.pt`` into the model, optimizer and generator when it matches this run.
 
     Returns where to continue and the saved pose corrections (G, 6) (None without pose refinement), or
     None when there is no matching checkpoint (nothing is changed then).
     """
     path = Path(out_dir) / CHECKPOINT
-    state = load_checkpoint(path, model.grid, model.sem.shape[1], num_groups, device)
+    state = load_checkpoint(path, model.grid, model.sem.shape[1], num_groups, device, cfg)
     if state is None:
         return None
     model.load_state_dict(state["model"])

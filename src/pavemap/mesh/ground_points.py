@@ -10,7 +10,8 @@ road, immune to exposure changes between frames, and rejects patches whose NCC p
 along the line (an edge running with the epipolar line: lane markings in forward motion). Pyramidal LK on
 plane-warped images, tried first, slid along such edges: 0.9 px robust error along the line, ground points
 5 cm robust RMS, against 0.5 cm here. The prior camera height only centres the search; triangulation
-(:mod:`pavemap.geometry.triangulate`) uses the matched pixels and the poses.
+(:mod:`pavemap.geometry.triangulate`) uses the matched pixels and the poses. The stage-1 side (camera height,
+sparse depth, self-check) is :mod:`pavemap.mesh.geometry`.
 """
 
 from __future__ import annotations
@@ -431,17 +432,6 @@ def estimate_camera_height(seq: Sequence, gp: GroundPoints, *, radius: float = 4
             est = camera_height(centres, local_ground(pts, centres, radius=radius, max_radius=max_radius,
                                                       min_points=min_points))
         out[name] = est
-    return out
-
-
-def depth_image(gp: GroundPoints, view_id: int, width: int, height: int, scale: float = 1.0) -> np.ndarray:
-    """(height, width) float32 sparse depth (m, 0 = none) of one view at ``scale``: the ground points'
-    camera depths at their pixels, the form of a sequence's depth layer and of ``PixelPool.depth``."""
-    sel = gp.obs_view == view_id
-    ui = np.rint(scale * (gp.obs_uv[sel] + 0.5) - 0.5).astype(np.int64)
-    ok = (ui[:, 0] >= 0) & (ui[:, 1] >= 0) & (ui[:, 0] < width) & (ui[:, 1] < height)
-    out = np.zeros((height, width), np.float32)
-    out[ui[ok, 1], ui[ok, 0]] = gp.obs_depth[sel][ok]
     return out
 
 

@@ -4,7 +4,9 @@ Why it matters: the height MLP learns at the SPEC's lr 1e-3 (Adam moves each wei
 CPU budget affords only ~100-200 steps, so it can move the surface by a few cm: the initial surface decides
 most of the height error. The pieces, in order:
 
-1. the camera mount height (:func:`camera_height`: measured depth, else a multi-view colour search);
+1. the camera mount height (:func:`camera_height`: measured depth; without depth the triangulated ground
+   points of :mod:`pavemap.mesh.geometry`, and this module's multi-view colour search only as the fallback
+   when they are not observable);
 2. the ground under the trajectory, its grade continued beyond both ends (:func:`ground_under_trajectory`);
 3. the relief of measured ground points relative to it, binned coarse and fine, gaps filled along the road
    (:func:`depth_relief`).

@@ -175,13 +175,16 @@ def to_road_mesh(model: RoadMeshModel, class_ids: list[int], has_semantics: bool
 @dataclass
 class RoadMesh:
     """The stage-1 result. surface: heights from the trained MLP, valid = crop; rgb (ny, nx, 3) in [0, 1];
-    sem_logits (ny, nx, C); class_ids maps channel -> the sequence's class id."""
+    sem_logits (ny, nx, C); class_ids maps channel -> the sequence's class id; observed (ny, nx) bool the
+    vertices some training pixel or triangulated ground point reaches (None: unknown, e.g. an old mesh file):
+    elsewhere the heights are a guess."""
 
     surface: HeightField
     rgb: torch.Tensor
     sem_logits: torch.Tensor
     class_ids: list[int]
     has_semantics: bool = True
+    observed: torch.Tensor | None = None
 
     def labels(self) -> torch.Tensor:
         """(ny, nx) long class id of the argmax channel; -1 off the crop or without semantics."""

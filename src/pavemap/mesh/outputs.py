@@ -26,7 +26,8 @@ MESH_FILE = "mesh.npz"
 
 def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.ndarray]:
     """Grid-order rasters: rgb (ny, nx, 3) uint8, semantic (ny, nx) int16 class id (-1 none),
-    semantic_rgb (ny, nx, 3) uint8, height (ny, nx) float32 (NaN off the crop), valid (ny, nx) bool."""
+    semantic_rgb (ny, nx, 3) uint8, height (ny, nx) float32 (NaN off the crop), valid (ny, nx) bool,
+    observed (ny, nx) bool (a training pixel or ground point reaches the vertex; the crop when unknown)."""
     valid = mesh.surface.valid.cpu().numpy()
     rgb = (mesh.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
     rgb[~valid] = 0
@@ -36,7 +37,9 @@ def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.nd
         sem_rgb[valid] = (128, 128, 128)
     h = mesh.surface.heights.detach().cpu().numpy().astype(np.float32).copy()
     h[~valid] = np.nan
-    return {"rgb": rgb, "semantic": labels, "semantic_rgb": sem_rgb, "height": h, "valid": valid}
+    observed = valid if mesh.observed is None else mesh.observed.cpu().numpy().astype(bool) & valid
+    return {"rgb": rgb, "semantic": labels, "semantic_rgb": sem_rgb, "height": h, "valid": valid,
+            "observed": observed}
 
 
 def _png_bytes(a: np.ndarray) -> bytes:
@@ -63,7 +66,8 @@ def _height_png(h: np.ndarray) -> np.ndarray:
 
 
 def write_mesh_ply(path: Path, mesh: RoadMesh) -> None:
-    """Kept vertices in world coordinates with vertex colours, faces of kept triangles (trimesh)."""
+    """Kept vertices in world coordinates with vertex colours and the uchar property ``observed`` (1: a
+    training pixel or ground point reaches it; absent when unknown), faces of kept triangles (trimesh)."""
     import trimesh
 
     s = mesh.surface
@@ -76,6 +80,8 @@ def write_mesh_ply(path: Path, mesh: RoadMesh) -> None:
     rgb = (mesh.rgb.reshape(-1, 3)[vid].clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
     colours = np.concatenate([rgb, np.full((rgb.shape[0], 1), 255, np.uint8)], 1)
     tm = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colours, process=False)
+    if mesh.observed is not None:
+        tm.vertex_attributes["observed"] = mesh.observed.reshape(-1).cpu().numpy()[vid.numpy()].astype(np.uint8)
     atomic_write_bytes(path, tm.export(file_type="ply"))
 
 
@@ -115,8 +121,9 @@ def save_mesh(out: Path, mesh: RoadMesh) -> None:
         np.savez_compressed(
             f, x0=s.x0, y0=s.y0, res=s.res, heights=s.heights.detach().cpu().numpy().astype(np.float32),
             valid=valid, rgb=mesh.rgb.reshape(-1, 3).cpu().numpy()[flat].astype(np.float32),
-            sem_logits=mesh.sem_logits.reshape(-1, C).cpu().numpy()[flat].astype(np.float32),
-            class_ids=np.asarray(mesh.class_ids, dtype=np.int64), has_semantics=mesh.has_semantics)
+            sem_logits=mesh.sem_logits.reshape(flat.size, C).cpu().numpy()[flat].astype(np.float32),
+            class_ids=np.asarray(mesh.class_ids, dtype=np.int64), has_semantics=mesh.has_semantics,
+            **({} if mesh.observed is None else {"observed": mesh.observed.cpu().numpy().astype(bool)}))
 
 
 def load_mesh(out_dir: Path) -> RoadMesh:
@@ -136,8 +143,9 @@ def load_mesh(out_dir: Path) -> RoadMesh:
         sem[flat] = z["sem_logits"]
         surf = HeightField(float(z["x0"]), float(z["y0"]), float(z["res"]),
                            torch.from_numpy(z["heights"].astype(np.float32)), torch.from_numpy(valid))
+        observed = torch.from_numpy(z["observed"].astype(bool)) if "observed" in z.files else None
         return RoadMesh(surf, torch.from_numpy(rgb.reshape(ny, nx, 3)), torch.from_numpy(sem.reshape(ny, nx, C)),
-                        [int(c) for c in z["class_ids"]], bool(z["has_semantics"]))
+                        [int(c) for c in z["class_ids"]], bool(z["has_semantics"]), observed)
     except (KeyError, ValueError, OSError) as e:
         raise PavemapError(f"{f}: not a pavemap mesh file ({e})") from None
 
@@ -155,7 +163,7 @@ def write_outputs(out: Path, mesh: RoadMesh, metrics: dict, classes: list[Semant
                       ("bev_height.png", _height_png(r["height"]))):
         atomic_write_bytes(out / name, _png_bytes(np.ascontiguousarray(img[::-1])))
         paths[name] = out / name
-    for name in ("rgb", "semantic", "height", "valid"):
+    for name in ("rgb", "semantic", "height", "valid", "observed"):
         _save_npy(out / f"bev_{name}.npy", r[name])
         paths[f"bev_{name}.npy"] = out / f"bev_{name}.npy"
     atomic_write_json(out / "grid.json", mesh.grid.to_dict())

@@ -1,11 +1,12 @@
 """Stage-1 training: fit heights, colours and semantics of the BEV mesh to the frames (SPEC §1).
 
-The driver :func:`reconstruct` runs, in order: the data (:mod:`pavemap.mesh.setup`), the initial surface
+The driver :func:`reconstruct` runs, in order: the data (:mod:`pavemap.mesh.setup`), the geometry without
+depth (ground points and camera height, :mod:`pavemap.mesh.geometry`), the initial surface
 (:mod:`pavemap.mesh.init_surface`), the model and optimizer, resuming (:mod:`pavemap.mesh.checkpoint`),
 the pose alignment (:mod:`pavemap.mesh.pose`), the epochs of optimisation steps
 (:func:`pavemap.mesh.step.train_step`, each sampling ``pixels_per_step`` pixels from all training views;
 the full-grid heights the march uses are refreshed every ``height_refresh_steps`` steps), the final bake,
-and the evaluation (:mod:`pavemap.mesh.evaluate`).
+the evaluation (:mod:`pavemap.mesh.evaluate`) and the geometry self-check (``metrics["geometry"]``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ from pavemap.mesh.bake import bake_into
 from pavemap.mesh.checkpoint import CHECKPOINT, Resumed, resume, save_checkpoint
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.evaluate import evaluate_pool, psnr, stage_metrics
-from pavemap.mesh.init_surface import camera_height, initial_heights
+from pavemap.mesh.geometry import Geometry, add_point_depth, find_geometry, point_vertices, self_check
+from pavemap.mesh.init_surface import initial_heights
 from pavemap.mesh.model import RoadMesh, RoadMeshModel, to_road_mesh
 from pavemap.mesh.pose import PoseCorrections, align_poses, corrected_poses, rig_corrections, rig_groups
 from pavemap.mesh.setup import TrainData, Warn, prepare, visible_pixels
@@ -61,6 +63,7 @@ class _Run:
     data: TrainData
     fill: float  # height off the crop (never used as surface)
     cam_h: float
+    geo: Geometry
     device: torch.device
     notes: list[str]
     t_start: float
@@ -68,6 +71,10 @@ class _Run:
     n_groups: int = 0  # pose correction groups (frames or views)
     done: Resumed = dataclasses.field(default_factory=lambda: Resumed(0, [], 0.0))
     align_log: list[dict] = dataclasses.field(default_factory=list)
+
+    def warn(self, msg: str) -> None:
+        self.notes.append(msg)
+        warnings.warn(msg, stacklevel=3)
 
 
 def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress: bool) -> tuple[RoadMesh, dict]:
@@ -83,9 +90,11 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
         warnings.warn(msg, stacklevel=3)
 
     data = prepare(seq, cfg, device, warn)
-    cam_h = camera_height(data.pool, cfg)
-    z_vertices = initial_heights(data.pool, data.grid, data.traj, cam_h, cfg)
-    run = _Run(data, float(np.median(z_vertices)), cam_h, device, notes, t_start,
+    geo = find_geometry(seq, data, cfg, warn)
+    if geo.observable and cfg.ground_points_use in ("depth", "both"):
+        data.pool, data.use_depth = add_point_depth(data.pool, geo.gp, cfg.render_scale), True
+    z_vertices = initial_heights(data.pool, data.grid, data.traj, geo.cam_h, cfg, ground_points=geo.init_points(cfg))
+    run = _Run(data, float(np.median(z_vertices)), geo.cam_h, geo, device, notes, t_start,
                torch.Generator().manual_seed(cfg.seed + 1))
     fit = _make_fit(run, cfg, z_vertices, seq.name, warn)
     if out_dir is not None and cfg.resume and (Path(out_dir) / CHECKPOINT).is_file():
@@ -112,14 +121,33 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
                          sharpen_iters=cfg.bake_sharpen_iters)
     mesh = to_road_mesh(fit.model, data.class_ids, data.use_sem)
     metrics = {**stage_metrics(fit, data, mesh, run.fill, _eval_delta(fit, data), seen, seq.root),
-               "device": str(run.device), "epochs": cfg.epochs, **schedule, "camera_height_init": run.cam_h,
-               "history": history, "warnings": run.notes, "config": cfg.to_dict()}
+               "device": str(run.device), "epochs": cfg.epochs, **schedule, "camera_height_init": run.cam_h}
+    mesh.observed = _observed(fit, run, seen)
+    s = mesh.surface
+    metrics["geometry"] = self_check(run.geo, data.grid.spec, s.heights.detach().cpu().numpy(),
+                                     s.valid.cpu().numpy(), mesh.observed.cpu().numpy(), cfg, run.warn)
+    metrics.update(history=history, warnings=run.notes, config=cfg.to_dict())
     if fit.poses is not None:
         metrics["pose_alignment"] = run.align_log
     metrics["seconds"] = run.done.seconds + time.perf_counter() - run.t_start
     if not torch.isfinite(mesh.surface.heights[mesh.surface.valid]).all():
         raise PavemapError("reconstruction produced non-finite heights")
     return mesh, metrics
+
+
+def _observed(fit: Fit, run: _Run, seen: torch.Tensor | None) -> torch.Tensor:
+    """(ny, nx) bool: the vertices some training pixel (``seen`` (Nv,), from the final bake) or ground point
+    reaches; without a final bake, a bake's support on the final surface."""
+    if seen is None:
+        from pavemap.mesh.bake import bake_colours
+
+        m = fit.model
+        _, support, _ = bake_colours(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), fit.cfg.max_dist,
+                                     fit.cfg.bake_fill_sigma)
+        seen = support.reshape(-1)[m.vertex_flat_ids] > 0
+    obs = fit.model.dense(seen.to(torch.bool), fill=False).cpu().numpy()
+    obs |= point_vertices(run.geo.gp, run.data.grid.spec)
+    return torch.from_numpy(obs & run.data.grid.valid)
 
 
 def _make_fit(run: _Run, cfg: MeshConfig, z_vertices: np.ndarray, seq_name: str, warn: Warn) -> Fit:
@@ -142,7 +170,7 @@ def _make_fit(run: _Run, cfg: MeshConfig, z_vertices: np.ndarray, seq_name: str,
 
 def _resume(fit: Fit, run: _Run, out_dir: Path, warn: Warn) -> None:
     """Continue from ``out_dir/checkpoint.pt`` when it belongs to this run."""
-    got = resume(out_dir, fit.model, fit.opt, run.gen, run.n_groups, run.device)
+    got = resume(out_dir, fit.model, fit.opt, run.gen, run.n_groups, run.device, cfg=fit.cfg)
     if got is None:
         warn("checkpoint in the output folder does not match this run; starting afresh")
         return
@@ -186,7 +214,8 @@ def _align_stage(fit: Fit, run: _Run) -> tuple[torch.Tensor, list[dict]]:
             log.append({"round": rnd + 1, "cost_first": costs[0], "cost_last": costs[-1]})
         if run.data.use_depth and cfg.init_from_depth:
             moved = dataclasses.replace(pool, T=corrected_poses(pool.T, rig_corrections(delta, poses.group, poses.arm)))
-            z = initial_heights(moved, run.data.grid, run.data.traj, run.cam_h, cfg)
+            z = initial_heights(moved, run.data.grid, run.data.traj, run.cam_h, cfg,
+                                ground_points=run.geo.init_points(cfg))
             model.z_base.copy_(torch.as_tensor(z, dtype=model.z_base.dtype, device=model.z_base.device))
     return delta, log
 

@@ -24,6 +24,7 @@ from pavemap.errors import PavemapError
 from pavemap.geometry.camera import pixel_grid, pixel_rays
 from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_write_json
+from pavemap.io.owned import check_replaceable, mark_written
 from pavemap.io.sequence import read_sequence, save_depth, write_sequence
 from pavemap.io.truth import read_truth_grid, write_truth_height
 from pavemap.synth.defects import blob_polygon
@@ -76,9 +77,7 @@ def synthesize(out: Path, preset: str = "nuscenes-like", seed: int = 0, frames: 
     scale = DEFAULT_SCALE[preset] if scale is None else float(scale)
     if not 0.02 <= scale <= 4.0:
         raise PavemapError(f"scale must be in 0.02..4, got {scale}")
-    occupied = any(out.iterdir()) if out.is_dir() else out.exists()
-    if occupied and not overwrite:
-        raise PavemapError(f"{out} already exists; choose another --out or pass --overwrite")
+    check_replaceable(out, "sequence", overwrite)  # only a folder pavemap wrote, and all of it pavemap's
     dev = resolve_device(device)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     try:
@@ -91,6 +90,7 @@ def synthesize(out: Path, preset: str = "nuscenes-like", seed: int = 0, frames: 
             _write_truth(world, tmp)
             write_sequence(seq, tmp)
             read_sequence(tmp)  # validate what we wrote before it can look complete
+            mark_written(tmp, "sequence", {"source": f"pavemap synth {preset} seed {seed}"})
         if out.exists():
             shutil.rmtree(out) if out.is_dir() else out.unlink()
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -5,6 +5,9 @@ instance maps written by ``pavemap synth``: unoccluded defect pixels), with conf
 misses, box jitter, class confusion and confidences. False positives are placed on off-road
 objects (vehicles, walls/buildings, poles, vegetation, crack-like streaks on sidewalks) and on
 shadows, so that by default ≈ 35 % of all detections lie off the road (the paper's filter rate).
+With ``paint_share`` > 0 a share of all detections are boxes on lane paint (source ``paint``): the
+mistake a real detector makes on lane lines (D00 boxes along the line), which fusion would confirm
+because paint does not move; the stage-2 paint rule (:mod:`pavemap.detect.paint`) must drop them.
 
 Alongside the detections it writes ``truth/detections_truth.jsonl``, aligned line by line:
 ``{"true", "defect_id", "offroad", "source", "cls_true", "road_fraction"}``. ``offroad`` is
@@ -22,6 +25,7 @@ from PIL import Image
 
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_write_text
+from pavemap.io.owned import note_written
 from pavemap.io.sequence import DETECTIONS_FILE, load_semantics, write_detections
 from pavemap.synth.params import DECOY_ID_OFFSET
 from pavemap.types import Detection, Sequence
@@ -44,6 +48,7 @@ FP_CLASS = {
     "vegetation": [0.1, 0.1, 0.6, 0.2],
     "shadow": [0.1, 0.2, 0.3, 0.4],
     "stain": [0.2, 0.2, 0.3, 0.3],
+    "paint": [0.7, 0.2, 0.05, 0.05],  # a line reads as a longitudinal crack
 }
 
 
@@ -63,14 +68,15 @@ class SimDetectorConfig:
     source_weights: dict[str, float] = field(default_factory=lambda: {
         "vehicle": 0.3, "building": 0.25, "streak": 0.2, "vegetation": 0.15, "shadow": 0.1})
     fp_box_frac: tuple[float, float] = (0.02, 0.09)  # false-positive box width as a fraction of image width
+    paint_share: float = 0.0  # fraction of all detections that are false positives on lane paint
 
     def validate(self) -> None:
-        for name in ("miss_rate", "confusion", "offroad_share", "onroad_fp_share", "box_jitter"):
+        for name in ("miss_rate", "confusion", "offroad_share", "onroad_fp_share", "box_jitter", "paint_share"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise PavemapError(f"SimDetectorConfig.{name} must be in [0, 1], got {v}")
-        if self.offroad_share + self.onroad_fp_share >= 0.95:
-            raise PavemapError("offroad_share + onroad_fp_share must stay below 0.95")
+        if self.offroad_share + self.onroad_fp_share + self.paint_share >= 0.95:
+            raise PavemapError("offroad_share + onroad_fp_share + paint_share must stay below 0.95")
 
 
 @dataclass
@@ -83,6 +89,7 @@ class _View:
     road_ii: np.ndarray  # (H+1, W+1) integral image of road
     pools: dict[str, np.ndarray]  # source -> (n,) flat pixel indices
     streaks: list[tuple[float, float, float, float]]
+    paint: list[tuple[float, float, float, float]] = field(default_factory=list)  # boxes of paint pieces
 
 
 def _boxes_of_ids(ids: np.ndarray, W: int):
@@ -140,7 +147,9 @@ def _load_view(seq: Sequence, frame, cam: str, names: dict[str, int], road_lut: 
     streaks = [(float(a), float(b), float(c), float(d)) for n, a, b, c, d in zip(cnt, x1, y1, x2, y2, strict=True)
                if n >= cfg.min_pixels]
     defects = np.where((low > 0) & (low < DECOY_ID_OFFSET), low, 0).reshape(-1)
-    view = _View(frame.index, cam, W, H, road, ii, pools, streaks)
+    view = _View(frame.index, cam, W, H, road, ii, pools, streaks,
+                 _paint_pieces(sem == names["lane_marking"], cfg) if cfg.paint_share > 0 and "lane_marking" in names
+                 else [])
     return view, _boxes_of_ids(defects, W)
 
 
@@ -208,7 +217,7 @@ def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
     bar.close()
 
     n_tp = len(dets)
-    total = n_tp / max(1e-9, 1.0 - cfg.offroad_share - cfg.onroad_fp_share)
+    total = n_tp / max(1e-9, 1.0 - cfg.offroad_share - cfg.onroad_fp_share - cfg.paint_share)
     n_off = int(round(cfg.offroad_share * total))
     n_on = int(round(cfg.onroad_fp_share * total))
     weight = np.array([sum(len(v.pools.get(s, ())) for s in ("vehicle", "building", "vegetation", "shadow"))
@@ -219,11 +228,16 @@ def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
     if n_on and road_w.sum() > 0:
         dets += _false_positives(rng, cfg, views, road_w / road_w.sum(), n_on, offroad=False, cam_order=cam_order)
 
+    n_paint = int(round(cfg.paint_share * total))
+    paint_w = np.array([len(v.paint) for v in views], float)
+    if n_paint and paint_w.sum() > 0:
+        dets += _paint_positives(rng, cfg, views, paint_w / paint_w.sum(), n_paint, cam_order)
     dets.sort(key=lambda d: (d[0], d[1].box[0], d[1].box[1]))
     out = Path(out) if out is not None else seq.root / DETECTIONS_FILE
     write_detections(out, [d[1] for d in dets])
     lines = [json.dumps(d[2]) for d in dets]
     atomic_write_text(seq.root / TRUTH_FILE, "\n".join(lines) + ("\n" if lines else ""))
+    note_written(seq.root / TRUTH_FILE)
     return len(dets)
 
 
@@ -261,6 +275,43 @@ def _false_positives(rng, cfg: SimDetectorConfig, views: list[_View], p_view: np
         out.append(((v.frame, cam_order[v.camera]), det, {
             "true": False, "defect_id": None, "offroad": offroad, "source": src, "cls_true": None,
             "road_fraction": round(rf, 3)}))
+    return out
+
+
+def _paint_pieces(paint: np.ndarray, cfg: SimDetectorConfig) -> list[tuple[float, float, float, float]]:
+    """Boxes of lane-paint pieces in a view: each dash, and a long line cut into pieces of at most 1.5× its
+    width along the image rows (a detector boxes a stretch of a line, not the whole line)."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(paint)
+    out = []
+    for k, sl in enumerate(ndimage.find_objects(lab), start=1):
+        if sl is None:
+            continue
+        ys, xs = sl
+        if int((lab[sl] == k).sum()) < cfg.min_pixels:
+            continue
+        step = max(8, int(1.5 * max(xs.stop - xs.start, 8)))
+        for y0 in range(ys.start, ys.stop, step):
+            y1 = min(ys.stop, y0 + step)
+            cols = np.flatnonzero((lab[y0:y1, xs] == k).any(0))
+            if cols.size and (y1 - y0) * cols.size >= cfg.min_pixels:
+                out.append((float(xs.start + cols[0]), float(y0), float(xs.start + cols[-1] + 1), float(y1)))
+    return out
+
+
+def _paint_positives(rng, cfg: SimDetectorConfig, views: list[_View], p_view: np.ndarray, n: int,
+                     cam_order: dict[str, int]):
+    out = []
+    for _ in range(n):
+        v = views[int(rng.choice(len(views), p=p_view))]
+        box = _jitter(rng, v.paint[int(rng.integers(len(v.paint)))], cfg.box_jitter, v.W, v.H)
+        cls = int(rng.choice(4, p=np.asarray(FP_CLASS["paint"])))
+        # as confident as a true detection: to the detector it looks real
+        det = Detection(v.frame, v.camera, box, cls, _conf(rng, cfg.conf_true, cfg.conf_min))
+        out.append(((v.frame, cam_order[v.camera]), det, {
+            "true": False, "defect_id": None, "offroad": False, "source": "paint", "cls_true": None,
+            "road_fraction": round(_road_fraction(v.road_ii, box), 3)}))
     return out
 
 

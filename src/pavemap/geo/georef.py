@@ -1,0 +1,214 @@
+"""Georeferencing: the geo origin of a drive from its trajectory and a GPS track.
+
+The trajectory (world metres, SPEC §0) is paired with the GPS fixes — per frame when the fixes
+come per image (poses.csv columns, EXIF, KITTI OXTS), else by time: the trajectory is
+interpolated to each fix's time (not the fixes to the frames', so an outlier fix stays one bad
+pair). The fixes are projected into an azimuthal equidistant plane, the robust fit of
+:mod:`pavemap.geo.fit` maps the trajectory onto them, and the plane is then re-centred on the
+fitted origin and refitted, so that the result is exactly the frame of
+:class:`pavemap.export.geo.LocalTangent`: world (0, 0) at the origin, world +x at ``heading_deg``.
+
+With poses from SfM the fit is scale free: its scale is the GPS's metres per sequence metre
+(the sequence is already scaled by the camera height). The GPS scale is applied when its
+standard error is below 1 %; a disagreement above 5 % with the camera-height scale is a warning.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pavemap.errors import PavemapError
+from pavemap.export.geo import local_tangent
+from pavemap.geo.fit import Fit2D, robust_fit, umeyama_2d
+from pavemap.io.gps import GpsTrack
+from pavemap.types import GeoOrigin, Sequence
+
+log = logging.getLogger("pavemap")
+
+MIN_FIXES = 3
+MIN_DRIVE_M = 10.0  # below this the heading is not determined by GPS positions
+MIN_INLIER_SHARE = 0.5
+MAX_RMS_M = 25.0
+SCALE_WARN = 0.05  # SfM scale vs GPS scale
+SCALE_APPLY_SE = 0.01  # apply the GPS scale when known to 1 %
+EXTENT_RATIO = 2.0  # metric poses: GPS track extent vs drive extent beyond this factor is another drive
+ABSOLUTE_T = 1e8  # seconds: timestamps above are absolute (Unix epoch, after 1973)
+
+
+@dataclass
+class Georef:
+    """The result: the origin (its ``georef`` record filled) and the scale applied to the poses."""
+
+    origin: GeoOrigin
+    scale: float  # applied to the poses (1.0 for metric poses)
+    fit: Fit2D
+    pairs_xy: np.ndarray  # (N, 2) world x, y (after scaling) of the fixes used
+    warnings: list[str] = field(default_factory=list)
+
+
+def _extent(a: np.ndarray) -> float:
+    return float(np.linalg.norm(a.max(0) - a.min(0))) if len(a) else 0.0
+
+
+def _frame_times(seq: Sequence) -> np.ndarray:
+    t = np.array([f.timestamp for f in seq.frames], dtype=np.float64)
+    if len(t) > 1 and not np.all(np.diff(t) > 0):
+        raise PavemapError(f"{seq.name}: frame timestamps are not increasing; GPS cannot be matched by time")
+    return t
+
+
+def time_offset(track: GpsTrack, frame_t: np.ndarray, offset: float | None) -> tuple[float, str | None]:
+    """(GPS time minus frame time, a note when it was guessed)."""
+    if offset is not None:
+        return float(offset), None
+    frames_abs = bool(len(frame_t)) and float(np.nanmin(frame_t)) > ABSOLUTE_T
+    if track.absolute == frames_abs:
+        return 0.0, None
+    off = float(np.nanmin(track.t) - frame_t[0])
+    return off, (f"{track.source}: frame times are {'absolute' if frames_abs else 'relative'}, GPS times "
+                 f"{'absolute' if track.absolute else 'relative'}: the first frame is taken at the first fix "
+                 f"(offset {off:.3f} s); give --gps-offset to set it")
+
+
+def pair_fixes(seq: Sequence, track: GpsTrack, offset: float | None = None
+               ) -> tuple[np.ndarray, np.ndarray, float, list[str]]:
+    """World positions (M, 3) paired with fix indices (M,): per frame or interpolated by time.
+
+    Returns (xyz, fix index, time offset used, notes).
+    """
+    if len(track) < MIN_FIXES:
+        raise PavemapError(f"{track.source}: {len(track)} GPS fix(es); georeferencing needs at least {MIN_FIXES}")
+    traj = seq.trajectory()
+    if track.frame is not None:
+        pos = {f.index: k for k, f in enumerate(seq.frames)}
+        idx = np.array([k for k, fr in enumerate(track.frame) if int(fr) in pos], dtype=np.int64)
+        if len(idx) < MIN_FIXES:
+            raise PavemapError(f"{track.source}: only {len(idx)} of {len(track)} fixes belong to the sequence's "
+                               f"{len(seq.frames)} frames; georeferencing needs at least {MIN_FIXES}")
+        rows = np.array([pos[int(track.frame[k])] for k in idx])
+        return traj[rows], idx, 0.0, []
+    ft = _frame_times(seq)
+    off, note = time_offset(track, ft, offset)
+    gt = track.t - off
+    if not np.isfinite(gt).all():
+        raise PavemapError(f"{track.source}: GPS fixes without timestamps cannot be matched to the frames by time")
+    inside = (gt >= ft[0] - 1e-6) & (gt <= ft[-1] + 1e-6)
+    if not inside.any():
+        raise PavemapError(
+            f"{track.source}: the GPS fixes ({gt.min():.1f} .. {gt.max():.1f} s in frame time, offset {off:.3f} s) "
+            f"do not overlap the frames ({ft[0]:.1f} .. {ft[-1]:.1f} s); check the files or --gps-offset")
+    idx = np.nonzero(inside)[0]
+    if len(idx) < MIN_FIXES:
+        raise PavemapError(f"{track.source}: only {len(idx)} GPS fix(es) fall within the frames' time "
+                           f"({ft[0]:.1f} .. {ft[-1]:.1f} s); georeferencing needs at least {MIN_FIXES}")
+    xyz = np.stack([np.interp(gt[idx], ft, traj[:, k]) for k in range(3)], axis=1)
+    return xyz, idx, off, [note] if note else []
+
+
+def _recentred(lon: np.ndarray, lat: np.ndarray, p: np.ndarray, inl: np.ndarray, start: tuple[float, float]
+               ) -> tuple[float, float, float, np.ndarray]:
+    """Refit rigidly in the aeqd plane of the current origin until the origin stops moving.
+
+    Returns (lat, lon, theta, residuals)."""
+    lat0, lon0 = start
+    for _ in range(3):
+        lt = local_tangent(GeoOrigin(lat0, lon0, 0.0, 90.0))
+        q = np.column_stack(lt.from_lonlat(lon, lat))
+        _, theta, t = umeyama_2d(p[inl], q[inl], False)
+        lo, la = lt.to_lonlat(np.array([t[0]]), np.array([t[1]]))
+        lon0, lat0 = float(lo[0]), float(la[0])
+        if math.hypot(*t) < 1e-4:
+            break
+    c, s = math.cos(theta), math.sin(theta)
+    lt = local_tangent(GeoOrigin(lat0, lon0, 0.0, 90.0))
+    q = np.column_stack(lt.from_lonlat(lon, lat))
+    r = np.linalg.norm(q - p @ np.array([[c, s], [-s, c]]), axis=1)
+    return lat0, lon0, theta, r
+
+
+def _check_shape(track: GpsTrack, p: np.ndarray, q: np.ndarray, scale_free: bool, seq: Sequence) -> None:
+    drive = _extent(p)
+    if drive < MIN_DRIVE_M:
+        raise PavemapError(f"{seq.name}: the drive spans only {drive:.1f} m while GPS fixes were taken (a standing "
+                           "vehicle?): its heading cannot be fitted; give --geo-origin LAT,LON,ALT,HEADING")
+    ratio = _extent(q) / drive
+    if not scale_free and not (1 / EXTENT_RATIO <= ratio <= EXTENT_RATIO):
+        raise PavemapError(f"{track.source}: the GPS track spans {_extent(q):.0f} m but the drive spans {drive:.0f} m "
+                           f"(x{ratio:.2f}): not this drive's track, or the poses are not in metres")
+
+
+def georeference(seq: Sequence, track: GpsTrack, *, scale_free: bool = False, offset: float | None = None,
+                 seed: int = 0) -> Georef:
+    """Fit the geo origin of ``seq`` to ``track``; PavemapError naming the file for a track that does not fit."""
+    xyz, idx, off, notes = pair_fixes(seq, track, offset)
+    lat, lon = track.lat[idx], track.lon[idx]
+    lt0 = local_tangent(GeoOrigin(float(np.median(lat)), float(np.median(lon)), 0.0, 90.0))
+    q = np.column_stack(lt0.from_lonlat(lon, lat))
+    p = xyz[:, :2]
+    _check_shape(track, p, q, scale_free, seq)
+    fit = robust_fit(p, q, scale=scale_free, seed=seed)
+    warnings = list(notes)
+    scale = 1.0
+    gps_scale, gps_scale_se = (fit.scale, fit.scale_se) if scale_free else (None, None)
+    if scale_free:
+        if not (1 / EXTENT_RATIO <= fit.scale <= EXTENT_RATIO):
+            raise PavemapError(f"{track.source}: the GPS track is {fit.scale:.2f} times the size of the drive: "
+                               "not this drive's track")
+        if abs(fit.scale - 1.0) > SCALE_WARN:
+            warnings.append(f"the SfM scale (from the camera height) and the GPS disagree by "
+                            f"{100 * (fit.scale - 1):+.1f} % (camera height wrong, or poor GPS)")
+        if fit.scale_se <= SCALE_APPLY_SE:
+            scale = fit.scale
+            p = p * scale
+            fit = robust_fit(p, q, scale=False, seed=seed)
+    share = float(fit.inliers.mean())
+    if share < MIN_INLIER_SHARE or fit.rms_m > MAX_RMS_M:
+        raise PavemapError(f"{track.source}: the GPS track does not match the trajectory: {int(fit.inliers.sum())} of "
+                           f"{len(p)} fixes agree (RMS {fit.rms_m:.1f} m); wrong file or time offset?")
+    start = lt0.to_lonlat(np.array([fit.t[0]]), np.array([fit.t[1]]))
+    lat0, lon0, theta, r = _recentred(lon, lat, p, fit.inliers, (float(start[1][0]), float(start[0][0])))
+    inl = fit.inliers
+    alt = track.alt[idx]
+    ok = inl & np.isfinite(alt)
+    alt0 = float(np.median(alt[ok] - scale * xyz[ok, 2])) if ok.any() else 0.0
+    heading = (90.0 - math.degrees(theta)) % 360.0
+    record = {
+        "source": track.source, "kind": track.kind, "fixes": int(len(p)), "inliers": int(inl.sum()),
+        "rms_m": round(float(np.sqrt(np.mean(r[inl] ** 2))), 3), "sigma_m": round(fit.sigma_m, 3),
+        "max_inlier_residual_m": round(float(r[inl].max()), 3), "time_offset_s": round(off, 6),
+        "scale_free": bool(scale_free), "scale_applied": round(scale, 6),
+        "gps_scale": None if gps_scale is None else round(gps_scale, 6),
+        "gps_scale_se": None if gps_scale_se is None else round(gps_scale_se, 6),
+        "altitude_from_gps": bool(ok.any()),
+        "fitted_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "warnings": warnings,
+    }
+    for w in warnings:
+        log.warning("georeference: %s", w)
+    origin = GeoOrigin(lat0, lon0, alt0, heading, georef=record)
+    fit.residuals = r
+    return Georef(origin, scale, fit, p, warnings)
+
+
+def scale_poses(seq: Sequence, scale: float) -> None:
+    """Multiply every camera position by ``scale`` (about the world origin), in place."""
+    if scale == 1.0:
+        return
+    for f in seq.frames:
+        for v in f.views.values():
+            v.T_world_cam = v.T_world_cam.copy()
+            v.T_world_cam[:3, 3] *= scale
+
+
+def position_error(true: GeoOrigin, fitted: GeoOrigin, xy: np.ndarray) -> np.ndarray:
+    """(N,) metres between world points ``xy`` (N, 2) put on the Earth by ``fitted`` and by ``true``."""
+    lon, lat = local_tangent(fitted).to_lonlat(xy[:, 0], xy[:, 1])
+    x, y = local_tangent(true).from_lonlat(lon, lat)
+    return np.hypot(x - xy[:, 0], y - xy[:, 1])
+
+
+__all__ = ["Georef", "georeference", "pair_fixes", "position_error", "scale_poses", "time_offset"]

@@ -1,0 +1,159 @@
+"""Keyframes by parallax and sanity checks of an SfM result (:mod:`pavemap.io.sfm`).
+
+A broken reconstruction (a static bonnet read as scene, a bus taken for the street, too little
+motion) must stop the import with one clear line rather than write a sequence whose poses jump.
+:func:`check_sfm` measures what a car's trajectory must satisfy and raises
+:class:`~pavemap.errors.PavemapError` naming the first failed check.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pavemap.errors import PavemapError
+
+
+@dataclass
+class SfmChecks:
+    """Limits of :func:`check_sfm` (the figures it reports sit in ``SfmResult.info``).
+
+    - ``min_registered``: share of the (key)frames that must be registered.
+    - ``max_reproj_px``: mean reprojection error of the model.
+    - ``max_turn_deg``: largest heading change between consecutive steps of the path.
+    - ``max_step_ratio``: largest ratio of consecutive step lengths (a car does not teleport); steps
+      under a quarter of the median (stop and go) are left out.
+    - ``max_height_dev``: largest deviation of the 10th / 90th percentile of the per-camera heights over
+      the road from their median, as a share of it (the mount does not move: a wandering height means
+      a wrong geometry). Per-camera heights from local road planes are noisy on smooth real asphalt
+      (±15 % on the nuScenes clip), so this catches gross failures only.
+    """
+
+    min_registered: float = 0.6
+    max_reproj_px: float = 2.0
+    max_turn_deg: float = 30.0
+    max_step_ratio: float = 10.0
+    max_height_dev: float = 0.2
+
+
+def select_keyframes(images: list[Path], min_parallax: float = 0.01, mask: np.ndarray | None = None,
+                     work_width: int = 480) -> np.ndarray:
+    """(N,) bool: frames kept as SfM keyframes, in video order.
+
+    A frame is kept when the median optical flow of tracked corners since the last keyframe is at
+    least ``min_parallax`` × the image width (a stopped car's frames add nothing but degenerate
+    pairs). The first and last frames are always kept. ``mask`` (H, W) True = ignore (ego vehicle).
+    """
+    import cv2
+
+    n = len(images)
+    keep = np.zeros(n, dtype=bool)
+    if n == 0:
+        return keep
+    keep[0] = True
+
+    def load(p: Path) -> np.ndarray:
+        g = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if g is None:
+            raise PavemapError(f"{p}: unreadable image")
+        return cv2.resize(g, (work_width, max(8, round(g.shape[0] * work_width / g.shape[1]))),
+                          interpolation=cv2.INTER_AREA)
+
+    last = load(images[0])
+    m8 = None
+    if mask is not None:
+        m8 = cv2.resize((~mask).astype(np.uint8) * 255, (last.shape[1], last.shape[0]), interpolation=cv2.INTER_NEAREST)
+    for i in range(1, n):
+        cur = load(images[i])
+        pts = cv2.goodFeaturesToTrack(last, 400, 0.01, 7, mask=m8)
+        if pts is None or len(pts) < 10:
+            keep[i], last = True, cur  # too little texture to judge: keep it and let SfM decide
+            continue
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(last, cur, pts, None)
+        ok = st.reshape(-1) == 1
+        flow = np.linalg.norm((nxt - pts).reshape(-1, 2)[ok], axis=1) if ok.any() else np.array([np.inf])
+        if float(np.median(flow)) >= min_parallax * work_width:
+            keep[i], last = True, cur
+    keep[-1] = True
+    return keep
+
+
+def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float) -> np.ndarray:
+    """(R,) median height of each camera centre ``C`` (R, 3) above road points ``P`` (M, 3) it drives over.
+
+    Each point goes to the camera nearest in the ground plane (within ``lateral`` sideways); cameras
+    with fewer than 3 points get NaN.
+    """
+    from scipy.spatial import cKDTree
+
+    def flat(a: np.ndarray) -> np.ndarray:
+        return a - np.outer(a @ up, up)
+
+    dist, k = cKDTree(flat(C)).query(flat(P))
+    h = (C[k] - P) @ up
+    out = np.full(len(C), np.nan)
+    for j in range(len(C)):
+        sel = (k == j) & (dist < lateral) & (h > 0)
+        if sel.sum() >= 3:
+            out[j] = float(np.median(h[sel]))
+    return out
+
+
+def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks, hint: str = "") -> dict:
+    """Measure the trajectory ``C`` (R, 3, metric) and per-camera ``heights`` (R,) m; raise on a failed check.
+
+    Returns the figures (also on success): ``registered_share``, ``reproj_px``, ``max_turn_deg``,
+    ``max_step_ratio``, ``height_dev`` (10th/90th percentile vs median), ``height_range_m``, ``height_p10_p90_m``.
+    """
+    steps = np.diff(C, axis=0)
+    L = np.linalg.norm(steps, axis=1)
+    # a stopped car makes short steps, and restarts: only steps of a moving car are compared
+    moving = 0.25 * float(np.median(L)) < L if L.size else L > 0
+    turn = 0.0
+    ratio = 1.0
+    if moving.sum() >= 2:
+        s = steps[moving] / L[moving, None]
+        cos = np.clip((s[1:] * s[:-1]).sum(1), -1.0, 1.0)
+        turn = float(np.degrees(np.arccos(cos)).max())
+        r = L[moving][1:] / L[moving][:-1]
+        ratio = float(np.maximum(r, 1.0 / r).max())
+    h = heights[np.isfinite(heights)]
+    med = float(np.median(h)) if h.size else float("nan")
+    # one camera's local road plane is noisy (few points, a kerb): judge the 10th-90th percentile band,
+    # which a wrong geometry (a drifting height) widens and a few noisy cameras do not
+    p10, p90 = (float(np.percentile(h, q)) for q in (10, 90)) if h.size else (float("nan"),) * 2
+    dev = max(p90 - med, med - p10) / med if h.size else float("inf")
+    figures = {
+        "registered_share": round(info["registered"] / max(1, info["keyframes"]), 3),
+        "reproj_px": round(float(info["reproj_px"]), 3),
+        "max_turn_deg": round(turn, 2),
+        "max_step_ratio": round(ratio, 2),
+        "height_dev": round(dev, 4),
+        "height_range_m": [round(float(h.min()), 3), round(float(h.max()), 3)] if h.size else None,
+        "height_p10_p90_m": [round(p10, 3), round(p90, 3)] if h.size else None,
+        "heights_measured": int(h.size),
+    }
+    tail = f"; {hint}" if hint else ""
+    if figures["registered_share"] < checks.min_registered:
+        raise PavemapError(f"SfM registered only {info['registered']} of {info['keyframes']} keyframes "
+                           f"(need {checks.min_registered:.0%}){tail}")
+    if figures["reproj_px"] > checks.max_reproj_px:
+        raise PavemapError(f"SfM sanity check failed: mean reprojection error {figures['reproj_px']:.2f} px "
+                           f"> {checks.max_reproj_px} px{tail}")
+    if turn > checks.max_turn_deg:
+        raise PavemapError(f"SfM sanity check failed: the path turns {turn:.0f}° between two steps "
+                           f"(> {checks.max_turn_deg:.0f}°): the trajectory is not a car's{tail}")
+    if ratio > checks.max_step_ratio:
+        raise PavemapError(f"SfM sanity check failed: one step of the path is {ratio:.1f}× the previous one "
+                           f"(> {checks.max_step_ratio}): the trajectory jumps{tail}")
+    if h.size < max(3, len(C) // 3) or dev > checks.max_height_dev:
+        why = (f"the camera height over the road varies by {dev:.0%} along the path"
+               if h.size >= 3 else f"the road under the path was found below only {h.size} of {len(C)} cameras")
+        raise PavemapError(f"SfM sanity check failed: {why} (limit {checks.max_height_dev:.0%}): "
+                           f"the geometry is wrong{tail}")
+    return figures
+
+
+__all__ = ["SfmChecks", "camera_heights", "check_sfm", "select_keyframes"]

@@ -1,0 +1,239 @@
+"""The road geometry of a stage-1 run when its views have no depth, and the run's self-check (issue 12).
+
+Without a depth layer the images are the only height evidence. :func:`find_geometry` triangulates ground
+points from the training views (:func:`pavemap.mesh.ground_points.find_ground_points`, poses held fixed)
+and turns them into the camera height above the road; the configured mount height ``mesh.camera_height``
+is a prior with an uncertainty that the points override (and a warning when they disagree by more than
+``mesh.camera_height_warn_frac``: a wrong mount height, or poses with a wrong scale). The points then
+shape the initial surface and/or act as sparse depth (``mesh.ground_points_use``).
+
+After training :func:`self_check` compares the final surface with the same points (median signed
+residual, robust RMS), reports the height found vs the prior and the fraction of vertices observed, and
+turns them into warnings: "surface not trustworthy: ..." or "geometry not observable: ...". Why a check
+at all: a surface shifted in height with a re-baked texture still reproduces the training colours, so the
+held-out PSNR cannot see a wrong height.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from pavemap.geometry.grid import GridSpec
+from pavemap.geometry.triangulate import camera_height as height_above
+from pavemap.geometry.triangulate import local_ground
+from pavemap.mesh.config import MeshConfig
+from pavemap.mesh.data import PixelPool
+from pavemap.mesh.ground_points import (
+    GroundConfig,
+    GroundPoints,
+    check_surface,
+    estimate_camera_height,
+    find_ground_points,
+)
+from pavemap.mesh.init_surface import camera_height as searched_height
+from pavemap.mesh.setup import TrainData, Warn
+from pavemap.types import Sequence
+
+MIN_POINTS = 50  # fewer triangulated ground points: geometry not observable
+
+
+@dataclass
+class Geometry:
+    """The height evidence of a run: ``gp`` the ground points (None when not computed), ``cam_h`` the camera
+    height used (m, the mean camera centre of a frame above the road), ``source`` where it came from
+    ("depth", "ground points", "plane search", "prior"), ``found`` / ``stderr`` the height the ground points
+    give (None when not observable), ``per_camera`` {camera: found height, spread, frames}, ``notes`` the
+    geometry warnings issued so far."""
+
+    gp: GroundPoints | None
+    cam_h: float
+    source: str
+    found: float | None = None
+    stderr: float | None = None
+    per_camera: dict[str, dict] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def observable(self) -> bool:
+        return self.gp is not None and self.gp.observable
+
+    def init_points(self, cfg: MeshConfig) -> np.ndarray | None:
+        """(N, 3) the points for the initial surface, or None."""
+        return self.gp.points if self.observable and cfg.ground_points_use in ("init", "both") else None
+
+
+def training_sequence(seq: Sequence, data: TrainData) -> Sequence:
+    """``seq`` restricted to the frames of the training views (held-out images must not shape the geometry)."""
+    keep = {k.frame for k in data.pool.keys}
+    return dataclasses.replace(seq, frames=[f for f in seq.frames if f.index in keep])
+
+
+def find_geometry(seq: Sequence, data: TrainData, cfg: MeshConfig, warn: Warn) -> Geometry:
+    """Ground points (per ``cfg.ground_points``) and the camera height used by the initial surface."""
+    notes: list[str] = []
+
+    def note(msg: str) -> None:
+        notes.append(msg)
+        warn(msg)
+
+    gp = None
+    if cfg.ground_points == "always" or (cfg.ground_points == "auto" and not data.use_depth):
+        gcfg = GroundConfig(prior_height=cfg.camera_height, scale=cfg.ground_points_scale,
+                            max_corners=cfg.ground_points_corners)
+        sub = training_sequence(seq, data)
+        gp = find_ground_points(sub, gcfg, min_points=MIN_POINTS)
+        if not gp.observable and data.use_depth:
+            note(f"ground points not observable (the depth layer gives the geometry): {gp.reason}")
+    geo = Geometry(gp, cfg.camera_height, "prior", notes=notes)
+    if data.use_depth:
+        geo.cam_h, geo.source = searched_height(data.pool, cfg), "depth"
+    if geo.observable:
+        _height_from_points(geo, seq, data, cfg)
+    if geo.source == "prior" and not data.use_depth:
+        if cfg.init_height_search:
+            geo.cam_h, geo.source = searched_height(data.pool, cfg), "plane search"
+        why = gp.reason if gp is not None else "mesh.ground_points is off"
+        what = (f"the colour-variance plane search ({geo.cam_h:.2f} m), unchecked" if geo.source == "plane search"
+                else f"the prior mesh.camera_height ({geo.cam_h:.2f} m), unchecked")
+        note(f"geometry not observable: no depth and no triangulated ground ({why}); the camera height is {what}")
+    if geo.found is not None:
+        _compare_prior(geo, cfg, note)
+    return geo
+
+
+def _height_from_points(geo: Geometry, seq: Sequence, data: TrainData, cfg: MeshConfig) -> None:
+    """Camera height of the frames' mean centres ``data.traj`` above the robust local ground of the road's
+    points, combined with the prior ``cfg.camera_height`` by inverse variance (the points dominate)."""
+    gp = geo.gp
+    pts = gp.points[gp.road] if gp.road.sum() >= 30 else gp.points
+    est = height_above(data.traj, local_ground(pts, data.traj, radius=4.0, max_radius=12.0, min_points=30))
+    for name, e in estimate_camera_height(training_sequence(seq, data), gp).items():
+        geo.per_camera[name] = {"found_m": _r(e.median), "spread_m": _r(e.spread), "frames": e.n_centres,
+                                "observable": e.observable}
+    if not est.observable:
+        gp.reason = f"camera height not observable from the ground points: {est.reason}"
+        return
+    geo.found, geo.stderr = est.median, max(est.stderr, 0.002)
+    if geo.source == "depth":  # measured depth stays the height used; the points only check it
+        return
+    w_found, w_prior = 1.0 / geo.stderr ** 2, 1.0 / cfg.camera_height_prior_sigma ** 2
+    geo.cam_h = (w_found * geo.found + w_prior * cfg.camera_height) / (w_found + w_prior)
+    geo.source = "ground points"
+
+
+def _compare_prior(geo: Geometry, cfg: MeshConfig, note: Warn) -> None:
+    off = (geo.found - cfg.camera_height) / cfg.camera_height
+    if abs(off) > cfg.camera_height_warn_frac:
+        note(f"camera height found from the images {geo.found:.2f} m is {100 * off:+.0f} % off the prior "
+             f"mesh.camera_height {cfg.camera_height:.2f} m: a wrong mount height, or poses with a wrong scale "
+             f"(x{geo.found / cfg.camera_height:.2f}); using {geo.cam_h:.2f} m")
+
+
+def add_point_depth(pool: PixelPool, gp: GroundPoints, scale: float) -> PixelPool:
+    """The pool with the ground points' observations as sparse depth: the pool pixel under each observation
+    (at image ``scale``) gets its camera depth and the observation's exact sub-pixel position (the form of
+    :func:`pavemap.mesh.data._depth_samples`). Pixels the pool does not hold (masked) are skipped."""
+    dev = pool.view.device
+    index = {(k.frame, k.camera): i for i, k in enumerate(pool.keys)}
+    vmap = np.array([index.get(tuple(k), -1) for k in gp.views], np.int64)
+    pv = vmap[gp.obs_view] if len(gp.obs_view) else np.zeros(0, np.int64)
+    uv = scale * (gp.obs_uv + 0.5) - 0.5
+    ok = pv >= 0
+    pv, uv, dep = pv[ok], uv[ok], gp.obs_depth[ok]
+    W = int(pool.uv[:, 0].max().item()) + 2 if len(pool) else 1
+    H = int(pool.uv[:, 1].max().item()) + 2 if len(pool) else 1
+    code = pool.view.cpu() * (W * H) + pool.uv[:, 1].cpu().round().long() * W + pool.uv[:, 0].cpu().round().long()
+    order = torch.argsort(code)
+    q = torch.from_numpy(pv * (W * H) + np.rint(uv[:, 1]).astype(np.int64) * W + np.rint(uv[:, 0]).astype(np.int64))
+    pos = torch.searchsorted(code[order], q).clamp(max=len(code) - 1)
+    hit = code[order][pos] == q
+    rows = order[pos[hit]].to(dev)
+    depth = torch.zeros(len(pool), dtype=torch.float32, device=dev) if pool.depth is None else pool.depth.clone()
+    new_uv = pool.uv.clone()
+    depth[rows] = torch.from_numpy(dep[hit.numpy()].astype(np.float32)).to(dev)
+    new_uv[rows] = torch.from_numpy(uv[hit.numpy()].astype(np.float32)).to(dev)
+    return dataclasses.replace(pool, depth=depth, uv=new_uv)
+
+
+def point_vertices(gp: GroundPoints | None, spec: GridSpec) -> np.ndarray:
+    """(ny, nx) bool: the grid vertices nearest to a ground point (what the points observe)."""
+    out = np.zeros(spec.shape, bool)
+    if gp is None or not len(gp):
+        return out
+    i = np.rint((gp.points[:, 0] - spec.x0) / spec.res).astype(np.int64)
+    j = np.rint((gp.points[:, 1] - spec.y0) / spec.res).astype(np.int64)
+    ok = (i >= 0) & (j >= 0) & (i < spec.nx) & (j < spec.ny)
+    out[j[ok], i[ok]] = True
+    return out
+
+
+def self_check(geo: Geometry, spec: GridSpec, heights: np.ndarray, valid: np.ndarray, observed: np.ndarray,
+               cfg: MeshConfig, warn: Warn) -> dict:
+    """The ``geometry`` entry of stage 1's metrics.json, issuing its warnings through ``warn``.
+
+    heights (ny, nx) the final surface, valid (ny, nx) its crop, observed (ny, nx) the vertices some training
+    pixel or ground point reaches. ``trustworthy`` is False when the surface disagrees with the ground points
+    (``cfg.check_max_bias_m`` / ``check_max_rms_m``) or the geometry was not observable; less than
+    ``cfg.min_observed_fraction`` of the vertices observed is a warning of its own.
+    """
+    out: dict = {
+        "source": geo.source, "ground_points": 0 if geo.gp is None else len(geo.gp),
+        "observable": geo.observable or geo.source == "depth",
+        "camera_height": {"used_m": _r(geo.cam_h), "found_m": _r(geo.found), "stderr_m": _r(geo.stderr),
+                          "prior_m": cfg.camera_height, "prior_sigma_m": cfg.camera_height_prior_sigma,
+                          "per_camera": geo.per_camera},
+    }
+    frac = float(observed[valid].mean()) if valid.any() else 0.0
+    out["observed_fraction"] = round(frac, 4)
+    issues = [n for n in geo.notes if n.startswith("geometry not observable")]
+    if geo.gp is not None and geo.gp.observable:
+        h = np.where(valid, heights, np.nan).astype(np.float64)
+        c = check_surface(geo.gp, spec, h, max_bias_m=cfg.check_max_bias_m, max_rms_m=cfg.check_max_rms_m)
+        out["check"] = {"points": c.n, "median_m": _r(c.median), "robust_rms_m": _r(c.robust_rms),
+                        "p90_abs_m": _r(c.p90), "frac_within_5cm": _r(c.frac_within), "flagged": c.flagged,
+                        "reason": c.reason, "max_bias_m": cfg.check_max_bias_m, "max_rms_m": cfg.check_max_rms_m}
+        if c.flagged:
+            issues.append(f"surface not trustworthy: {c.reason}")
+            warn(issues[-1])
+    out["trustworthy"] = not issues
+    if frac < cfg.min_observed_fraction:
+        # Not a wrong surface: ground no camera saw (behind the first frame, past the last) holds no defect
+        # either, but its heights are a guess, and a short drive is mostly that.
+        issues.append(f"mesh mostly unobserved: only {100 * frac:.0f} % of its vertices are reached by a training "
+                      f"pixel or ground point (mesh.min_observed_fraction {cfg.min_observed_fraction:.2f}); heights "
+                      "elsewhere are guesses (bev_observed.npy)")
+        warn(issues[-1])
+    out["warnings"] = issues + [n for n in geo.notes if n not in issues]
+    return out
+
+
+def _r(v: float | None, nd: int = 4) -> float | None:
+    return None if v is None or not np.isfinite(v) else round(float(v), nd)
+
+
+def mark_observed(instances: list, mesh) -> None:  # noqa: ANN001 - DefectInstance list, RoadMesh
+    """Set ``extra["observed"]`` of each defect instance: whether the mesh vertex nearest its centre is
+    observed (a training pixel or ground point reaches it). Left unset when the mesh has no observed layer."""
+    if mesh.observed is None:
+        return
+    s, obs = mesh.surface, mesh.observed.cpu().numpy()
+    for inst in instances:
+        i = int(round((float(inst.centroid[0]) - s.x0) / s.res))
+        j = int(round((float(inst.centroid[1]) - s.y0) / s.res))
+        inside = 0 <= j < obs.shape[0] and 0 <= i < obs.shape[1]
+        inst.extra["observed"] = bool(inside and obs[j, i])
+
+
+def depth_image(gp: GroundPoints, view_id: int, width: int, height: int, scale: float = 1.0) -> np.ndarray:
+    """(height, width) float32 sparse depth (m, 0 = none) of one view at ``scale``: the ground points'
+    camera depths at their pixels, the form of a sequence's depth layer and of ``PixelPool.depth``."""
+    sel = gp.obs_view == view_id
+    ui = np.rint(scale * (gp.obs_uv[sel] + 0.5) - 0.5).astype(np.int64)
+    ok = (ui[:, 0] >= 0) & (ui[:, 1] >= 0) & (ui[:, 0] < width) & (ui[:, 1] < height)
+    out = np.zeros((height, width), np.float32)
+    out[ui[ok, 1], ui[ok, 0]] = gp.obs_depth[sel][ok]
+    return out

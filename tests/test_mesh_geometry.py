@@ -1,0 +1,106 @@
+"""Stage 1 without depth (issue 12): the geometry from triangulated ground points, the camera-height prior,
+the run's self-check and the observed layer."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pavemap.geometry.grid import GridSpec
+from pavemap.geometry.triangulate import sample_grid
+from pavemap.io.sequence import read_sequence
+from pavemap.mesh import MeshConfig, reconstruct
+from pavemap.mesh.geometry import find_geometry, self_check
+from pavemap.mesh.setup import prepare
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """A small no-depth front-camera drive (12 frames at 10 Hz, half resolution), its true surface and the
+    true height of the camera above it."""
+    from pavemap.synth import synthesize
+
+    root = tmp_path_factory.mktemp("geom") / "kitti"
+    synthesize(root, "kitti-like", seed=5, frames=12, scale=0.5, depth="none", progress=False)
+    seq = read_sequence(root)
+    grid = GridSpec.from_dict(json.loads((root / "truth" / "height.json").read_text()))
+    heights = np.load(root / "truth" / "height.npy").astype(np.float64)
+    C = np.array([f.views["CAM_FRONT"].T_world_cam[:3, 3] for f in seq.frames])
+    cam_true = float(np.median(C[:, 2] - sample_grid(grid, heights, C[:, :2])))
+    return seq, grid, heights, cam_true
+
+
+def _cfg(**kw) -> MeshConfig:
+    return MeshConfig(crop_m=5.0, pe_levels=4, epochs=1, render_scale=0.25, eval_scale=0.25, resume=False,
+                      pixels_per_step=32768, **kw)
+
+
+@pytest.fixture(scope="module")
+def run(drive, tmp_path_factory):
+    out = tmp_path_factory.mktemp("geom_run")
+    with pytest.warns(UserWarning):
+        mesh, metrics = reconstruct(drive[0], out, _cfg(), progress=False)
+    return mesh, metrics, out
+
+
+def test_no_depth_drive_reconstructs_without_bias(drive, run):
+    _, grid, heights, cam_true = drive
+    mesh, metrics, out = run
+    geo = metrics["geometry"]
+    assert geo["source"] == "ground points" and geo["trustworthy"], geo["warnings"]
+    assert abs(geo["camera_height"]["found_m"] - cam_true) <= 0.02
+    s = mesh.surface
+    obs = (s.valid & mesh.observed).numpy()
+    assert 0.2 <= obs.sum() / s.valid.sum().item() <= 1.0  # a 12-frame drive: most of the crop is unseen
+    xy = s.grid_xy()[torch.from_numpy(obs)].double().numpy()
+    err = s.heights.numpy()[obs] - sample_grid(grid, heights, xy)
+    assert abs(np.nanmean(err)) <= 0.02
+    # the observed layer travels with the mesh: a PLY vertex property and a BEV raster
+    assert b"property uchar observed" in (out / "mesh.ply").read_bytes()[:1000]
+    assert np.array_equal(np.load(out / "bev_observed.npy"), obs)
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["geometry"]["check"]["points"] >= 100
+
+
+def test_a_wrong_camera_height_prior_is_corrected(drive):
+    seq, _, _, cam_true = drive
+    notes: list[str] = []
+    cfg = _cfg(camera_height=cam_true + 0.5)
+    data = prepare(seq, cfg, torch.device("cpu"), notes.append)
+    geo = find_geometry(seq, data, cfg, notes.append)
+    assert geo.source == "ground points"
+    assert abs(geo.cam_h - cam_true) <= 0.02
+    # the disagreement with the prior is a warning naming both heights
+    warn = [n for n in notes if n.startswith("camera height found")]
+    assert warn and f"{cam_true + 0.5:.2f} m" in warn[0] and f"{geo.found:.2f} m" in warn[0]
+
+
+def test_a_shifted_surface_is_flagged(drive):
+    seq, grid, heights, _ = drive
+    cfg = _cfg()
+    notes: list[str] = []
+    data = prepare(seq, cfg, torch.device("cpu"), notes.append)
+    geo = find_geometry(seq, data, cfg, notes.append)
+    valid = np.isfinite(heights)
+    observed = valid.copy()
+    good = self_check(geo, grid, heights, valid, observed, cfg, notes.append)
+    assert good["trustworthy"] and abs(good["check"]["median_m"]) < 0.02
+    bad = self_check(geo, grid, heights + 0.3, valid, observed, cfg, notes.append)
+    assert not bad["trustworthy"] and bad["check"]["flagged"]
+    assert any(w.startswith("surface not trustworthy") and "0.30 m" in w for w in bad["warnings"])
+    # a surface nobody observed is not trusted either
+    blind = self_check(geo, grid, heights, valid, np.zeros_like(valid), cfg, notes.append)
+    assert blind["observed_fraction"] == 0 and blind["warnings"][0].startswith("mesh mostly unobserved")
+
+
+def test_a_single_frame_is_not_a_confident_map(drive):
+    seq = dataclasses.replace(drive[0], frames=drive[0].frames[:1])
+    with pytest.warns(UserWarning, match="geometry not observable"):
+        _, metrics = reconstruct(seq, None, dataclasses.replace(_cfg(), crop_m=12.0), progress=False)
+    geo = metrics["geometry"]
+    assert not geo["observable"] and not geo["trustworthy"]
+    assert any(w.startswith("geometry not observable") for w in metrics["warnings"])
