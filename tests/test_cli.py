@@ -134,3 +134,15 @@ def test_bad_config_value_stops_run_before_any_stage(tiny_seq, tmp_path, capture
     r = _invoke("run", tiny_seq.root, "--out", tmp_path / "r", "--set", "fusion.alpha=2")
     assert r.exit_code == 2 and "fusion.alpha" in r.stderr
     assert "cfg" not in captured_run and not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("command", [
+    ["run"], ["demo"], ["config"], ["info"], ["synth"], ["detect"], ["reconstruct"], ["fuse"], ["eval"], ["compare"],
+    ["train-detector"], ["import", "folder"], ["import", "video"], ["import", "kitti"], ["import", "nuscenes"],
+    ["import", "gps"],
+])
+def test_every_command_help_renders(command):
+    # rich markup in a docstring (e.g. "[/x]") crashes --help at render time only
+    r = _invoke(*command, "--help")
+    assert r.exit_code == 0, r.output
+    assert "Usage" in r.output

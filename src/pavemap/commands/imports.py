@@ -163,7 +163,7 @@ def folder_cmd(
 ) -> None:
     """Own drive: images + cameras.json + poses.csv (or --poses sfm) → sequence folder.
 
-    GPS: lat/lon[/alt/heading] columns in poses.csv, or --gps FILE|exif; or --geo-origin by hand."""
+    GPS: lat, lon (optional alt, heading) columns in poses.csv, or --gps FILE|exif; or --geo-origin by hand."""
     from pavemap.io.folder import import_folder
 
     seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height,
