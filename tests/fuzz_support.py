@@ -188,7 +188,8 @@ def check(r, code: int, *words: str) -> None:  # noqa: ANN001
 
 def looks_complete(out: Path) -> list[str]:
     """Files whose presence says a command finished (a run's metrics.json, a sequence's sequence.json …)."""
-    names = ("metrics.json", "defects.geojson", "report.html", "sequence.json", "eval.json", "changes.geojson")
+    names = ("metrics.json", "defects.geojson", "report.html", "sequence.json", "eval.json", "changes.geojson",
+             "changes.gpkg")
     return [n for n in names if (out / n).exists()]
 
 

@@ -47,7 +47,22 @@ def survey_b():
 
 
 def _by_change(out):
-    fc = json.loads((out / "changes.geojson").read_text())
+    """Features of the changes layer, from changes.geojson (lon/lat) or changes.gpkg (local CRS)."""
+    if (out / "changes.geojson").is_file():
+        fc = json.loads((out / "changes.geojson").read_text())
+    else:
+        import pyogrio.raw
+        import shapely
+
+        meta, _, geoms, fields = pyogrio.raw.read(out / "changes.gpkg", layer="changes")
+        feats = []
+        for k, g in enumerate(geoms):
+            vals = (f[k] for f in fields)
+            p = {n: (v.item() if hasattr(v, "item") else v) for n, v in zip(meta["fields"], vals, strict=True)}
+            p.update({n: None for n in ("id_a", "id_b") if p[n] == -1})
+            p["reasons"] = [r for r in p["reasons"].split("; ") if r]
+            feats.append({"properties": p, "geometry": shapely.geometry.mapping(shapely.from_wkb(g))})
+        fc = {"features": feats, "crs_wkt": meta["crs"]}
     res = {}
     for f in fc["features"]:
         p = f["properties"]
@@ -65,7 +80,9 @@ def test_new_grown_unchanged_gone(tmp_path):
     reasons = {f["properties"]["id_b"]: f["properties"]["reasons"] for f in fc["features"]
                if f["properties"]["change"] == "grown"}
     assert reasons[12] == ["area"] and reasons[13] == ["severity"] and "class" in reasons[15]
-    assert fc["pavemap"]["coordinates"] == "local"
+    # without geo origins the layer is never GeoJSON (it would read as lon/lat) but a local engineering CRS
+    assert not (tmp_path / "out" / "changes.geojson").exists()
+    assert "ENGCRS" in fc["crs_wkt"] or "pavemap local" in fc["crs_wkt"]
     gone = next(f for f in fc["features"] if f["properties"]["change"] == "gone")
     assert shape(gone["geometry"]).equals(box(30, 0, 31, 1))
     assert (tmp_path / "out" / "changes.png").stat().st_size > 10_000

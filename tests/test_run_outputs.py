@@ -78,7 +78,9 @@ def test_run_writes_each_file_once_atomically(counted_run):
 def test_one_defect_schema_in_every_file(counted_run, tiny_seq):
     result, out, _ = counted_run
     run_fc = json.loads((out / "defects.geojson").read_text())
-    assert run_fc["pavemap"]["coordinates"] == "lonlat" and run_fc["pavemap"]["geo_origin"] is not None
+    assert run_fc["pavemap"]["coordinates"] == "lonlat"
+    seq_origin = json.loads((tiny_seq.root / "sequence.json").read_text())["geo_origin"]
+    assert {k: run_fc["pavemap"]["geo_origin"][k] for k in ("lat", "lon")} == {k: seq_origin[k] for k in ("lat", "lon")}
     truth_fc = json.loads((tiny_seq.root / "truth" / "defects.geojson").read_text())
     assert truth_fc["pavemap"]["coordinates"] == "local"
     for fc in (run_fc, json.loads((out / "baseline_defects.geojson").read_text()), truth_fc):

@@ -52,7 +52,8 @@ def test_compare_classifies_truth_changes_exactly(two_surveys, tmp_path):
     assert counts["grown"] == n_grown
     # a new defect placed touching an old one may be matched to it; never more "new" than really new
     assert n_new - 1 <= counts["new"] <= n_new
-    assert (tmp_path / "changes" / "changes.geojson").is_file()
+    assert (tmp_path / "changes" / "changes.gpkg").is_file()  # truth is local metres: no GeoJSON
+    assert not (tmp_path / "changes" / "changes.geojson").exists()
     assert (tmp_path / "changes" / "changes.png").is_file()
 
 

@@ -23,7 +23,7 @@ import shapely
 from pavemap.errors import PavemapError
 from pavemap.export.geo import local_tangent, origin_to_dict
 from pavemap.export.geojson import DefectLayer, features_to_geojson
-from pavemap.export.gis import read_defect_layer
+from pavemap.export.gis import CHANGES_GPKG, read_defect_layer, write_local_changes
 from pavemap.io.atomic import atomic_write_json
 from pavemap.types import DEFECT_CODES
 
@@ -129,7 +129,8 @@ def _classify(a: _Defects, b: _Defects, i: int, j: int, grow_ratio: float) -> tu
 
 def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | os.PathLike,
                  match_m: float = 0.5, grow_ratio: float = 1.2) -> dict:
-    """Compare survey A (earlier) with survey B (later); write changes.geojson, changes.png, changes.json.
+    """Compare survey A (earlier) with survey B (later); write the changes layer (``changes.geojson`` in lon/lat
+    with geo origins, else ``changes.gpkg`` in the local engineering CRS), changes.png, changes.json.
 
     ``run_a``/``run_b``: run output folders (holding defects.geojson) or the GeoJSON files themselves.
     Returns the summary dict that is also written to ``changes.json``.
@@ -209,13 +210,18 @@ def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | 
     summary = {"run_a": str(pa), "run_b": str(pb), "defects_a": len(A.ids), "defects_b": len(B.ids),
                "counts": counts, "match_m": match_m, "grow_ratio": grow_ratio, "coordinates": frame,
                "warnings": warnings, "changes": pair_rows}
+    layer = "changes.geojson" if frame == "lonlat" else CHANGES_GPKG
     try:
-        atomic_write_json(out_dir / "changes.geojson", fc, indent=None)
+        if frame == "lonlat":
+            atomic_write_json(out_dir / layer, fc, indent=None)
+        else:
+            write_local_changes(out_dir / layer, geoms, pair_rows)
         _changes_figure(out_dir / "changes.png", A, B, records, counts)
         atomic_write_json(out_dir / "changes.json", summary)
     except PermissionError as e:
         raise PavemapError(f"{out_dir}: cannot write the comparison ({e.strerror or e}: {e.filename})") from None
-    summary["paths"] = {k: str(out_dir / k) for k in ("changes.geojson", "changes.png", "changes.json")}
+    summary["paths"] = {"changes": str(out_dir / layer), "changes.png": str(out_dir / "changes.png"),
+                        "changes.json": str(out_dir / "changes.json")}
     return summary
 
 

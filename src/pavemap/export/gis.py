@@ -35,7 +35,7 @@ from pavemap.errors import PavemapError
 from pavemap.export.geo import WGS84, _apply, local_tangent, origin_from_dict
 from pavemap.export.geojson import PROPERTY_SCHEMA, DefectLayer, _polygons, instance_properties
 from pavemap.export.kml import write_kml
-from pavemap.geo.crs import crs_label, output_crs
+from pavemap.geo.crs import crs_label, local_crs, output_crs
 from pavemap.io.atomic import atomic_path
 from pavemap.types import DefectInstance, GeoOrigin, Sequence
 
@@ -59,7 +59,7 @@ def _fields(records: list[dict], schema: list[tuple[str, str]]) -> tuple[list[np
         if typ == "float":
             data.append(np.array([np.nan if v is None else float(v) for v in vals], dtype=np.float64))
         elif typ == "int":
-            data.append(np.array([0 if v is None else int(v) for v in vals], dtype=np.int64))
+            data.append(np.array([-1 if v is None else int(v) for v in vals], dtype=np.int64))
         else:
             data.append(np.array(["" if v is None else str(v) for v in vals], dtype=object))
     return data, [n for n, _ in schema]
@@ -220,6 +220,24 @@ def write_gis(out_dir: str | os.PathLike, instances: list[DefectInstance], *, ba
         write_kml(out / name, instances, geo_origin, seq)
         paths[name] = out / name
     return paths
+
+
+CHANGES_GPKG = "changes.gpkg"
+_CHANGE_SCHEMA = [("id", "int"), ("change", "str"), ("id_a", "int"), ("id_b", "int"), ("code", "str"),
+                  ("code_a", "str"), ("code_b", "str"), ("area_a", "float"), ("area_b", "float"),
+                  ("severity_a", "float"), ("severity_b", "float"), ("distance_m", "float"), ("reasons", "str"),
+                  ("area_ratio", "float"), ("x_m", "float"), ("y_m", "float")]
+
+
+def write_local_changes(path: str | os.PathLike, geoms: list, rows: list[dict]) -> Path:
+    """A comparison without a geo origin: layer ``changes`` in the local engineering CRS (GeoJSON would be
+    read as lon/lat). ``geoms`` in world metres; a missing id (new / gone) is written as -1."""
+    recs = [{**r, "reasons": "; ".join(r.get("reasons") or [])} for r in rows]
+    out = Path(path)
+    with atomic_path(out) as tmp:
+        _write_layer(tmp, "GPKG", "changes", [_multi(g) for g in geoms], recs, local_crs("changes"), "MultiPolygon",
+                     _CHANGE_SCHEMA, dataset_options=_GPKG_OPTIONS)
+    return out
 
 
 # ---------------------------------------------------------------------------- reading back

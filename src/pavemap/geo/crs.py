@@ -1,7 +1,7 @@
 """Coordinate reference systems of pavemap's outputs.
 
 - With a geo origin: the drive's UTM zone (WGS84, EPSG:326NN north / 327NN south) by default,
-  any projected CRS pyproj knows by ``--crs`` (``EPSG:XXXX``, a WKT or a PROJ string).
+  any projected CRS pyproj knows by ``--crs`` (``EPSG:<code>`` (e.g. ``EPSG:32633``), a WKT or a PROJ string).
 - Without one: an explicit *local engineering* CRS (WKT2 ``ENGCRS``, Cartesian metres, named
   after the sequence), so GDAL and QGIS read the layers as local metres, never as longitude and
   latitude (a GeoJSON without a CRS is WGS84 by RFC 7946).
@@ -41,7 +41,10 @@ def local_crs(name: str = "") -> CRS:
 
 
 def parse_crs(code: str, where: str = "--crs") -> CRS:
-    """A CRS from ``EPSG:XXXX`` / WKT / PROJ text; PavemapError naming ``where`` when it does not exist."""
+    """A CRS from ``EPSG:<code>`` (e.g. ``EPSG:32633``), WKT or PROJ text.
+
+    PavemapError naming ``where`` when it does not exist.
+    """
     text = str(code).strip()
     if text.isdigit():
         text = f"EPSG:{text}"
