@@ -161,3 +161,28 @@ def test_mapped_defects_within_a_metre_on_a_synthetic_drive(tmp_path):
         x, y = lt.from_lonlat(lon, lat)
         medians.append(float(np.median(np.hypot(x - true_xy[:, 0], y - true_xy[:, 1]))))
     assert np.median(medians) < 1.0, medians
+
+
+def test_lever_arm_removes_the_antenna_offset():
+    """An antenna 1.1 m behind and 0.3 m left of the camera shifts the track by about a metre; given as the
+    lever arm the fit is exact again, and without it the error is the offset (the test can fail both ways)."""
+    seq = _seq()
+    lever = (-1.1, 0.3, 0.8)
+    tr = simulate_track(seq, TRUE, sigma=1e-6, outliers=0.0, seed=0, lever_arm=lever)
+    tr.alt[:] = np.nan
+    err_without = position_error(TRUE, georeference(seq, tr).origin, seq.trajectory()[:, :2])
+    g = georeference(seq, tr, lever_arm=lever)
+    err_with = position_error(TRUE, g.origin, seq.trajectory()[:, :2])
+    assert np.median(err_without) > 0.5 and err_with.max() < 0.01
+    assert g.origin.georef["lever_arm_m"] == [-1.1, 0.3, 0.8]
+
+
+def test_fix_headings_are_checked_against_the_fitted_heading():
+    seq = _seq()
+    tr = simulate_track(seq, TRUE, sigma=0.5, outliers=0.0, seed=1, heading_sigma_deg=1.0)
+    g = georeference(seq, tr)
+    assert g.origin.georef["heading_from_fixes_deg"] == pytest.approx(TRUE.heading_deg, abs=1.0)
+    assert not any("headings" in w for w in g.warnings)
+    tr.heading[:] = (tr.heading + 20.0) % 360.0  # e.g. a magnetic heading, or the yaw of a crabbing vehicle
+    g = georeference(seq, tr)
+    assert [w for w in g.warnings if "own headings" in w and "(+20." in w or "(+19." in w]

@@ -196,6 +196,8 @@ def test_folder_import_with_a_gps_file_matched_by_time(tmp_path, fmt):
     assert r.exit_code == 0, r.output
     assert "RMS" in r.output
     _check(read_sequence(tmp_path / "seq"), xyz, 0.5)
+    info = CliRunner().invoke(app, ["info", str(tmp_path / "seq")])  # the georeferencing record, not only lat/lon
+    assert f"track.{fmt}" in info.output and "fixes, RMS" in info.output, info.output
 
 
 def test_folder_import_relative_times_and_exif(tmp_path):
@@ -238,9 +240,11 @@ def test_kitti_import_with_oxts(tmp_path):
         j = k - 1100
         rec = [lat[j], lon[j], 200.0 + xyz[j, 2], 0, 0, 0] + [0.0] * 24 if j >= 0 else [0.0] * 30
         (oxts / "data" / f"{k:010d}.txt").write_text(" ".join(f"{v:.10f}" for v in rec))
-    r = CliRunner().invoke(app, ["import", "kitti", str(tmp_path / "odo"), "--sequence", "08", "--camera", "0",
-                                 "--no-lidar", "--no-semantics", "--oxts", str(oxts.parent),
-                                 "--out", str(tmp_path / "seq")])
+    args = ["import", "kitti", str(tmp_path / "odo"), "--sequence", "08", "--camera", "0", "--no-lidar",
+            "--no-semantics", "--oxts", str(oxts.parent), "--out", str(tmp_path / "seq")]
+    r = CliRunner().invoke(app, args)  # 08 has 4071 frames in the devkit: this one is another drive
+    assert r.exit_code != 0 and "--oxts-first" in r.output and "4071" in r.output
+    r = CliRunner().invoke(app, [*args, "--oxts-first", "1100"])
     assert r.exit_code == 0, r.output
     s = read_sequence(tmp_path / "seq")
     _check(s, xyz, 0.05)
@@ -260,6 +264,7 @@ def test_bad_gps_inputs_name_the_file_and_the_problem(tmp_path):
     write_gpx(tmp_path / "two.gpx", t[:2], lat[:2], lon[:2], alt[:2])
     with pytest.raises(ERR, match=r"two\.gpx: 2 GPS fix\(es\); .* at least 3"):
         imp(str(tmp_path / "two.gpx"), "s1")
+    assert not (tmp_path / "s1").exists() or not any((tmp_path / "s1").rglob("*.*"))  # nothing copied
     write_gpx(tmp_path / "late.gpx", t + 3600, lat, lon, alt)
     with pytest.raises(ERR, match=r"late\.gpx: the GPS fixes .* do not overlap the frames"):
         imp(str(tmp_path / "late.gpx"), "s2")
@@ -325,3 +330,26 @@ def test_video_import_with_gps(tmp_path):
                        fps=5.0, geo=GeoInput(gps=str(tmp_path / "drive.nmea")))
     _check(seq, xyz, 0.3)
     assert "first fix" in " ".join(seq.geo_origin.georef["warnings"])
+
+
+def test_oxts_lever_arm_from_the_raw_calibration(tmp_path):
+    """KITTI's calibration puts the OXTS unit about 1.08 m behind, 0.32 m left of and 0.72 m below cam0."""
+    from pavemap.io.gps import oxts_antenna_in_cam0
+    from pavemap.io.kitti import A_KITTI_TO_WORLD
+
+    date = tmp_path / "2011_09_26"
+    (date / "2011_09_26_drive_0001_sync" / "oxts" / "data").mkdir(parents=True)
+    (date / "2011_09_26_drive_0001_sync" / "oxts" / "data" / "0000000000.txt").write_text("0 " * 30)
+    assert oxts_antenna_in_cam0(date / "2011_09_26_drive_0001_sync") is None  # no calibration: unknown
+    (date / "calib_imu_to_velo.txt").write_text(
+        "calib_time: 25-May-2012 16:47:16\nR: 9.999976e-01 7.553071e-04 -2.035826e-03 -7.854027e-04 9.998898e-01 "
+        "-1.482298e-02 2.024406e-03 1.482454e-02 9.998881e-01\nT: -8.086759e-01 3.195559e-01 -7.997231e-01\n")
+    (date / "calib_velo_to_cam.txt").write_text(
+        "calib_time: 15-Mar-2012 11:37:16\nR: 7.533745e-03 -9.999714e-01 -6.166020e-04 1.480249e-02 7.280733e-04 "
+        "-9.998902e-01 9.998621e-01 7.523790e-03 1.480755e-02\nT: -4.069766e-03 -7.631618e-02 -2.717806e-01\n"
+        "delta_f: 0 0\ndelta_c: 0 0\n")
+    lever = A_KITTI_TO_WORLD @ oxts_antenna_in_cam0(date / "2011_09_26_drive_0001_sync")
+    assert lever == pytest.approx([-1.08, 0.32, -0.72], abs=0.02)
+    (date / "calib_imu_to_velo.txt").write_text("R: 1 0 0\nT: 0 0 0\n")
+    with pytest.raises(SequenceError, match="calib_imu_to_velo.txt"):
+        oxts_antenna_in_cam0(date / "2011_09_26_drive_0001_sync")

@@ -50,6 +50,8 @@ _GPS = typer.Option(None, "--gps", help="GPS track: .gpx, NMEA log (RMC/GGA), .c
                     "timestamp), or 'exif' (the images' EXIF GPS); fitted to the trajectory -> geo origin.")
 _GPS_OFFSET = typer.Option(None, "--gps-offset", help="GPS time minus frame time, seconds (default: 0 when both "
                            "are absolute or both relative, else the first frame is taken at the first fix).")
+_LEVER = typer.Option(None, "--gps-lever-arm", help="X,Y,Z metres from the camera to the GPS antenna (x forward, "
+                      "y left, z up), e.g. -1.1,0.3,0.8; KITTI raw OXTS: read from the raw calibration.")
 _GEO_ORIGIN = typer.Option(None, "--geo-origin", help="LAT,LON[,ALT[,HEADING]] of the world origin by hand "
                            "(HEADING: degrees clockwise from north of world +x).")
 
@@ -85,10 +87,11 @@ def _done(seq: Sequence, out: Path, sem: str) -> None:
     typer.echo(describe(seq))
 
 
-def _geo(gps: str | None, offset: float | None, origin: str | None, oxts_first: int | None = None):  # noqa: ANN202
-    from pavemap.geo.attach import GeoInput
+def _geo(gps: str | None, offset: float | None, origin: str | None, oxts_first: int | None = None,  # noqa: ANN202
+         lever_arm: str | None = None):
+    from pavemap.geo.attach import GeoInput, parse_lever_arm
 
-    return GeoInput(gps, offset, origin, oxts_first)
+    return GeoInput(gps, offset, origin, oxts_first, parse_lever_arm(lever_arm))
 
 
 @imports_app.command("kitti")
@@ -106,7 +109,7 @@ def kitti_cmd(
                                      "records of this sequence -> geo origin."),
     oxts_first: int | None = typer.Option(None, help="OXTS record of odometry frame 0 (default: the devkit's "
                                           "offset for sequences 00-10, e.g. 1100 for 08)."),
-    geo_origin: str | None = _GEO_ORIGIN,
+    geo_origin: str | None = _GEO_ORIGIN, gps_lever_arm: str | None = _LEVER,
     labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
@@ -114,7 +117,7 @@ def kitti_cmd(
     from pavemap.io.kitti import import_kitti
 
     seq = import_kitti(root, sequence, out, camera=camera, start=start, stop=stop, stride=stride, lidar=lidar,
-                       geo=_geo(str(oxts) if oxts else None, None, geo_origin, oxts_first))
+                       geo=_geo(str(oxts) if oxts else None, None, geo_origin, oxts_first, gps_lever_arm))
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, 1.65, device))
 
 
@@ -153,6 +156,7 @@ def folder_cmd(
     camera_height: float = typer.Option(1.5, help="Camera height above the road, metres (SfM scale, fallback)."),
     name: str | None = typer.Option(None, help="Sequence name (default: the folder name)."),
     gps: str | None = _GPS, gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
+    gps_lever_arm: str | None = _LEVER,
     labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
     ego_mask: str | None = typer.Option(
@@ -167,7 +171,8 @@ def folder_cmd(
     from pavemap.io.folder import import_folder
 
     seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height,
-                        geo=_geo(gps, gps_offset, geo_origin), ego_mask=ego_mask, refine_intrinsics=refine_intrinsics)
+                        geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm), ego_mask=ego_mask,
+                        refine_intrinsics=refine_intrinsics)
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device))
 
 
@@ -184,6 +189,7 @@ def video_cmd(
     max_frames: int | None = typer.Option(None, help="Keep at most this many frames."),
     camera_height: float = typer.Option(1.5, help="Camera height above the road, metres (SfM scale, fallback)."),
     gps: str | None = _GPS, gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
+    gps_lever_arm: str | None = _LEVER,
     labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
@@ -191,7 +197,7 @@ def video_cmd(
     from pavemap.io.folder import import_video
 
     seq = import_video(video, cameras, poses, out, fps=fps or None, start=start, stop=stop, max_frames=max_frames,
-                       camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin))
+                       camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm))
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device))
 
 
@@ -200,6 +206,7 @@ def gps_cmd(
     seq: Path = typer.Argument(..., help="An existing sequence folder (its sequence.json is rewritten)."),
     gps: str | None = typer.Option(None, "--gps", help="GPS track (.gpx, NMEA, .csv) or a KITTI raw oxts folder."),
     gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
+    gps_lever_arm: str | None = _LEVER,
 ) -> None:
     """Georeference an existing sequence: fit its trajectory to a GPS track (rigid), or set the origin by hand."""
     from pavemap.errors import PavemapError
@@ -209,7 +216,7 @@ def gps_cmd(
     if gps is None and geo_origin is None:
         raise PavemapError("give --gps FILE or --geo-origin LAT,LON[,ALT[,HEADING]]")
     s = read_sequence(seq)
-    attach_geo(s, _geo(gps, gps_offset, geo_origin))
+    attach_geo(s, _geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm))
     write_sequence(s, seq)
     typer.echo(f"{s.name}: {describe(s)}")
 

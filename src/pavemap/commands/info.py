@@ -75,8 +75,13 @@ def _summary(seq: Path, s: Sequence) -> None:
         "truth": "yes" if (seq / "truth" / "defects.geojson").is_file() else "no",
     }
     typer.echo("layers     " + ", ".join(f"{k}: {v}" for k, v in layers.items()))
-    geo = s.geo_origin
-    typer.echo(f"geo origin {'none' if geo is None else f'{geo.lat:.6f}, {geo.lon:.6f}'}")
+    from pavemap.geo.attach import describe
+
+    # the georeferencing record (source, fixes, residual RMS, scale, lever arm, warnings) says how far to trust it
+    typer.echo("geo        " + describe(s).replace("\n", "\n           "))
+    r = (s.geo_origin.georef or {}) if s.geo_origin is not None else {}
+    if r.get("lever_arm_m"):
+        typer.echo(f"           GPS lever arm {r['lever_arm_m']} m (x forward, y left, z up)")
     if n_sem == 0:
         typer.secho("warning: no semantic maps: stage 1 reconstructs from RGB only and the road filter uses the "
                     "mesh footprint (every box on the mapped road area counts as road)", fg=typer.colors.YELLOW,

@@ -27,12 +27,14 @@ log = logging.getLogger("pavemap")
 @dataclass
 class GeoInput:
     """The importer options: ``gps`` (a file, ``exif``, or a KITTI raw oxts folder), its clock offset
-    (GPS time minus frame time, seconds), a hand-given origin, the OXTS record of the first frame."""
+    (GPS time minus frame time, seconds), a hand-given origin, the OXTS record of the first frame, and the
+    antenna's lever arm (metres, x forward, y left, z up from the camera; KITTI: from the raw calibration)."""
 
     gps: str | None = None
     offset: float | None = None
     origin: str | None = None
     oxts_first: int | None = None
+    lever_arm: tuple[float, float, float] | None = None
 
     @property
     def given(self) -> bool:
@@ -58,6 +60,20 @@ def parse_geo_origin(text: str) -> GeoOrigin:
     return origin
 
 
+def parse_lever_arm(text: str | None) -> tuple[float, float, float] | None:
+    """``X,Y,Z`` metres (x forward, y left, z up; the antenna minus the camera) -> a tuple; None for None."""
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(p) for p in str(text).split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != 3 or not all(math.isfinite(v) and abs(v) < 50.0 for v in vals):
+        raise PavemapError(f"--gps-lever-arm {text!r}: expected X,Y,Z in metres (x forward, y left, z up from the "
+                           "camera to the GPS antenna, each under 50 m), e.g. -1.1,0.3,0.8")
+    return vals  # type: ignore[return-value]
+
+
 def _csv_track(poses: Path | None, per_frame: bool) -> GpsTrack | None:
     if poses is None or poses.suffix.lower() != ".csv" or not poses.is_file():
         return None
@@ -80,12 +96,14 @@ def _track(geo: GeoInput, poses: Path | None, images: dict[int, Path] | None, pe
 
 
 def attach_geo(seq: Sequence, geo: GeoInput | None, *, poses: str | os.PathLike | None = None,
-               root: Path | None = None, scale_free: bool | None = None, per_frame: bool = True) -> Georef | None:
+               root: Path | None = None, scale_free: bool | None = None, per_frame: bool = True,
+               images: dict[int, Path] | None = None) -> Georef | None:
     """Set ``seq.geo_origin`` (and, for scale-free poses, rescale them to the GPS) before it is written.
 
     ``poses``: the importer's poses.csv (its lat/lon columns are GPS when no ``--gps`` is given) or
-    ``"sfm"`` (scale-free fit unless ``scale_free`` says otherwise); ``root``: the folder the images
-    were copied to (``--gps exif`` reads them there; JPEGs are copied byte for byte); ``per_frame``: the
+    ``"sfm"`` (scale-free fit unless ``scale_free`` says otherwise); ``images`` {frame index: image path}
+    (``--gps exif`` reads them; the originals, so a failed fit happens before anything is copied) or ``root``,
+    the folder they were copied to (JPEGs are copied byte for byte); ``per_frame``: the
     CSV columns are one fix per frame (else matched by their timestamps). Returns the fit (None by hand
     or without GPS).
     """
@@ -93,7 +111,8 @@ def attach_geo(seq: Sequence, geo: GeoInput | None, *, poses: str | os.PathLike 
     sfm = str(poses).lower() == "sfm"
     scale_free = sfm if scale_free is None else scale_free
     poses = None if (poses is None or sfm) else Path(poses)
-    images = {f.index: root / next(iter(f.views.values())).image for f in seq.frames} if root is not None else None
+    if images is None and root is not None:
+        images = {f.index: root / next(iter(f.views.values())).image for f in seq.frames}
     if geo.origin is not None:
         if geo.gps is not None or _csv_track(poses, per_frame) is not None:
             raise PavemapError("give either --geo-origin or GPS (--gps, or lat/lon columns in the poses), not both")
@@ -102,7 +121,16 @@ def attach_geo(seq: Sequence, geo: GeoInput | None, *, poses: str | os.PathLike 
     track = _track(geo, poses, images, per_frame)
     if track is None:
         return None
-    g = georeference(seq, track, scale_free=scale_free, offset=geo.offset)
+    lever = geo.lever_arm
+    if lever is None and track.kind == "oxts":
+        from pavemap.io.gps import oxts_antenna_in_cam0
+        from pavemap.io.kitti import A_KITTI_TO_WORLD
+
+        p = oxts_antenna_in_cam0(geo.gps)  # type: ignore[arg-type]
+        lever = None if p is None else tuple(float(v) for v in A_KITTI_TO_WORLD @ p)
+        log.info("OXTS lever arm %s", "from the raw calibration: " + ", ".join(f"{v:+.2f}" for v in lever)
+                 if lever else "unknown (no calib_imu_to_velo.txt / calib_velo_to_cam.txt): about 1 m error")
+    g = georeference(seq, track, scale_free=scale_free, offset=geo.offset, lever_arm=lever)
     scale_poses(seq, g.scale)
     seq.geo_origin = g.origin
     r = g.origin.georef or {}
@@ -126,4 +154,4 @@ def describe(seq: Sequence) -> str:
     return where
 
 
-__all__ = ["GeoInput", "attach_geo", "describe", "parse_geo_origin"]
+__all__ = ["GeoInput", "attach_geo", "describe", "parse_geo_origin", "parse_lever_arm"]

@@ -8,6 +8,12 @@ pair). The fixes are projected into an azimuthal equidistant plane, the robust f
 fitted origin and refitted, so that the result is exactly the frame of
 :class:`pavemap.export.geo.LocalTangent`: world (0, 0) at the origin, world +x at ``heading_deg``.
 
+A GPS antenna is not at the camera: ``lever_arm`` (metres, vehicle frame x forward, y left, z up,
+antenna minus the rig's camera centre) moves each trajectory position to where the antenna was,
+turned by the direction of travel there (a ground vehicle's yaw; its pitch and roll are ignored).
+Where the fixes carry headings (RMC course, EXIF direction, CSV column, OXTS yaw) the heading they
+imply is compared with the fitted one; a disagreement above ``HEADING_WARN_DEG`` is a warning.
+
 With poses from SfM the fit is scale free: its scale is the GPS's metres per sequence metre
 (the sequence is already scaled by the camera height). The GPS scale is applied when its
 standard error is below 1 %; a disagreement above 5 % with the camera-height scale is a warning.
@@ -38,6 +44,8 @@ SCALE_WARN = 0.05  # SfM scale vs GPS scale
 SCALE_APPLY_SE = 0.01  # apply the GPS scale when known to 1 %
 EXTENT_RATIO = 2.0  # metric poses: GPS track extent vs drive extent beyond this factor is another drive
 ABSOLUTE_T = 1e8  # seconds: timestamps above are absolute (Unix epoch, after 1973)
+HEADING_WARN_DEG = 5.0  # fitted heading vs the fixes' own headings
+MIN_STEP_M = 0.05  # travel below this between frames gives no direction (a standing vehicle)
 
 
 @dataclass
@@ -75,15 +83,46 @@ def time_offset(track: GpsTrack, frame_t: np.ndarray, offset: float | None) -> t
                  f"(offset {off:.3f} s); give --gps-offset to set it")
 
 
-def pair_fixes(seq: Sequence, track: GpsTrack, offset: float | None = None
+def travel_yaw(traj: np.ndarray) -> np.ndarray:
+    """(F, 2|3) positions -> (F,) float64 direction of travel (radians from world +x, counter-clockwise).
+
+    Central differences; frames where the vehicle stands take the direction of the nearest moving frames
+    (all zeros when it never moves)."""
+    xy = np.asarray(traj, dtype=np.float64)[:, :2]
+    if len(xy) < 2:
+        return np.zeros(len(xy))
+    d = np.gradient(xy, axis=0)
+    moving = np.hypot(d[:, 0], d[:, 1]) > MIN_STEP_M / 2
+    if not moving.any():
+        return np.zeros(len(xy))
+    k = np.arange(len(xy))
+    # unwrap-free fill: interpolate the unit vector's components, then take the angle
+    cx = np.interp(k, k[moving], d[moving, 0] / np.hypot(*d[moving].T))
+    cy = np.interp(k, k[moving], d[moving, 1] / np.hypot(*d[moving].T))
+    return np.arctan2(cy, cx)
+
+
+def antenna_positions(traj: np.ndarray, lever_arm: tuple[float, float, float] | None) -> np.ndarray:
+    """(F, 3) camera centres -> (F, 3) antenna positions: ``lever_arm`` (x fwd, y left, z up) turned by the yaw."""
+    traj = np.asarray(traj, dtype=np.float64)
+    if lever_arm is None or not np.any(lever_arm):
+        return traj
+    lx, ly, lz = (float(v) for v in lever_arm)
+    yaw = travel_yaw(traj)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return traj + np.column_stack([c * lx - s * ly, s * lx + c * ly, np.full(len(traj), lz)])
+
+
+def pair_fixes(seq: Sequence, track: GpsTrack, offset: float | None = None,
+               lever_arm: tuple[float, float, float] | None = None
                ) -> tuple[np.ndarray, np.ndarray, float, list[str]]:
-    """World positions (M, 3) paired with fix indices (M,): per frame or interpolated by time.
+    """World positions (M, 3) of the antenna paired with fix indices (M,): per frame or interpolated by time.
 
     Returns (xyz, fix index, time offset used, notes).
     """
     if len(track) < MIN_FIXES:
         raise PavemapError(f"{track.source}: {len(track)} GPS fix(es); georeferencing needs at least {MIN_FIXES}")
-    traj = seq.trajectory()
+    traj = antenna_positions(seq.trajectory(), lever_arm)
     if track.frame is not None:
         pos = {f.index: k for k, f in enumerate(seq.frames)}
         idx = np.array([k for k, fr in enumerate(track.frame) if int(fr) in pos], dtype=np.int64)
@@ -142,10 +181,33 @@ def _check_shape(track: GpsTrack, p: np.ndarray, q: np.ndarray, scale_free: bool
                            f"(x{ratio:.2f}): not this drive's track, or the poses are not in metres")
 
 
+def heading_check(seq: Sequence, track: GpsTrack, idx: np.ndarray, xyz: np.ndarray, inliers: np.ndarray,
+                  heading_deg: float) -> tuple[float | None, str | None]:
+    """The origin heading the fixes' own headings imply (circular median over inlier fixes while moving) and a
+    warning when it differs from the fitted ``heading_deg`` by more than HEADING_WARN_DEG; (None, None) without."""
+    h = track.heading[idx]
+    yaw = travel_yaw(xyz)  # the direction of travel at each paired fix (they are in time order)
+    step = np.hypot(*np.gradient(xyz[:, :2], axis=0).T) if len(xyz) > 1 else np.zeros(len(xyz))
+    ok = np.isfinite(h) & inliers & (step > MIN_STEP_M / 2)
+    if ok.sum() < MIN_FIXES:
+        return None, None
+    # a course h at world yaw psi (counter-clockwise) puts world +x at compass h + psi (compass turns clockwise)
+    implied = np.radians(h[ok] + np.degrees(yaw[ok]))
+    mean = math.degrees(math.atan2(np.median(np.sin(implied)), np.median(np.cos(implied)))) % 360.0
+    diff = (mean - heading_deg + 180.0) % 360.0 - 180.0
+    if abs(diff) <= HEADING_WARN_DEG:
+        return mean, None
+    return mean, (f"{track.source}: the fixes' own headings put world +x at {mean:.1f} deg, the positions at "
+                  f"{heading_deg:.1f} deg ({diff:+.1f} deg): a heading that is the vehicle's yaw, not its course, "
+                  "or a wrong lever arm / time offset")
+
+
 def georeference(seq: Sequence, track: GpsTrack, *, scale_free: bool = False, offset: float | None = None,
-                 seed: int = 0) -> Georef:
-    """Fit the geo origin of ``seq`` to ``track``; PavemapError naming the file for a track that does not fit."""
-    xyz, idx, off, notes = pair_fixes(seq, track, offset)
+                 seed: int = 0, lever_arm: tuple[float, float, float] | None = None) -> Georef:
+    """Fit the geo origin of ``seq`` to ``track``; PavemapError naming the file for a track that does not fit.
+
+    ``lever_arm``: the GPS antenna minus the camera centre, metres, vehicle frame (x forward, y left, z up)."""
+    xyz, idx, off, notes = pair_fixes(seq, track, offset, lever_arm)
     lat, lon = track.lat[idx], track.lon[idx]
     lt0 = local_tangent(GeoOrigin(float(np.median(lat)), float(np.median(lon)), 0.0, 90.0))
     q = np.column_stack(lt0.from_lonlat(lon, lat))
@@ -177,6 +239,9 @@ def georeference(seq: Sequence, track: GpsTrack, *, scale_free: bool = False, of
     ok = inl & np.isfinite(alt)
     alt0 = float(np.median(alt[ok] - scale * xyz[ok, 2])) if ok.any() else 0.0
     heading = (90.0 - math.degrees(theta)) % 360.0
+    gps_heading, heading_note = heading_check(seq, track, idx, xyz * scale, inl, heading)
+    if heading_note:
+        warnings.append(heading_note)
     record = {
         "source": track.source, "kind": track.kind, "fixes": int(len(p)), "inliers": int(inl.sum()),
         "rms_m": round(float(np.sqrt(np.mean(r[inl] ** 2))), 3), "sigma_m": round(fit.sigma_m, 3),
@@ -185,6 +250,8 @@ def georeference(seq: Sequence, track: GpsTrack, *, scale_free: bool = False, of
         "gps_scale": None if gps_scale is None else round(gps_scale, 6),
         "gps_scale_se": None if gps_scale_se is None else round(gps_scale_se, 6),
         "altitude_from_gps": bool(ok.any()),
+        "lever_arm_m": None if lever_arm is None else [round(float(v), 4) for v in lever_arm],
+        "heading_from_fixes_deg": None if gps_heading is None else round(gps_heading, 3),
         "fitted_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "warnings": warnings,
     }
     for w in warnings:
@@ -211,4 +278,5 @@ def position_error(true: GeoOrigin, fitted: GeoOrigin, xy: np.ndarray) -> np.nda
     return np.hypot(x - xy[:, 0], y - xy[:, 1])
 
 
-__all__ = ["Georef", "georeference", "pair_fixes", "position_error", "scale_poses", "time_offset"]
+__all__ = ["Georef", "antenna_positions", "georeference", "heading_check", "pair_fixes", "position_error",
+           "scale_poses", "time_offset", "travel_yaw"]

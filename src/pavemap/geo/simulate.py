@@ -30,11 +30,17 @@ def gauss_markov(n: int, dt: float, sigma: float, tau_s: float, rng: np.random.G
 
 def simulate_track(seq: Sequence, origin: GeoOrigin, *, hz: float = 1.0, sigma: float = 3.0,
                    noise: str = "white", outliers: float = 0.02, tau_s: float = 300.0, t0: float = 0.0,
-                   seed: int = 0, source: str = "simulated") -> GpsTrack:
-    """Fixes at ``hz`` over the drive's time span, times ``t0`` + frame time (``t0`` > 1e8: absolute)."""
+                   seed: int = 0, source: str = "simulated", lever_arm: tuple[float, float, float] | None = None,
+                   heading_sigma_deg: float | None = None) -> GpsTrack:
+    """Fixes at ``hz`` over the drive's time span, times ``t0`` + frame time (``t0`` > 1e8: absolute).
+
+    ``lever_arm``: the antenna's offset from the camera (x forward, y left, z up; the fixes are the
+    antenna's); ``heading_sigma_deg``: the fixes carry the true course with that noise (else none)."""
+    from pavemap.geo.georef import antenna_positions, travel_yaw
+
     rng = np.random.default_rng(seed)
     ft = np.array([f.timestamp for f in seq.frames], dtype=np.float64)
-    traj = seq.trajectory()
+    traj = antenna_positions(seq.trajectory(), lever_arm)
     start = ft[0] + rng.uniform(0, 1.0 / hz)  # the receiver's clock is not the camera's
     t = np.arange(start, ft[-1], 1.0 / hz)
     xyz = np.stack([np.interp(t, ft, traj[:, k]) for k in range(3)], axis=1)
@@ -54,7 +60,11 @@ def simulate_track(seq: Sequence, origin: GeoOrigin, *, hz: float = 1.0, sigma: 
     x, y = lt.enu_to_world(e + de, n + dn)
     lon, lat = lt.to_lonlat(x, y)
     alt = origin.alt + xyz[:, 2] + rng.normal(0, 2 * sigma, len(t))
-    rows = list(zip(t + t0, lat, lon, alt, [None] * len(t), strict=True))
+    heading: list = [None] * len(t)
+    if heading_sigma_deg is not None:
+        yaw = np.degrees(travel_yaw(xyz))  # the course over ground, world frame
+        heading = list((origin.heading_deg - yaw + rng.normal(0, heading_sigma_deg, len(t))) % 360.0)
+    rows = list(zip(t + t0, lat, lon, alt, heading, strict=True))
     return make_track(source, "simulated", rows, absolute=t0 > 1e8)
 
 

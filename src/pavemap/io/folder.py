@@ -303,13 +303,15 @@ def import_folder(
                 raise SequenceError(poses_file, f"frame {r.frame} camera {cam!r} appears twice")
             f.views[cam] = View(cam, rel, r.T)
             jobs.append((src, out / rel))
-    for src, dst in tqdm(jobs, desc="copy images", unit="img", disable=None):
-        copy_image(src, dst)
     seq = Sequence(
         name or images_dir.resolve().name, list(classes or DEFAULT_CLASSES), cameras,
         [frames[i] for i in sorted(frames)],
     )
-    attach_geo(seq, geo, poses=poses, root=out)  # GPS (--gps, poses.csv lat/lon, EXIF) or --geo-origin
+    src_of = {dst: src for src, dst in jobs}  # georeference before copying: a GPS that does not fit copies nothing
+    attach_geo(seq, geo, poses=poses, images={f.index: src_of[out / next(iter(f.views.values())).image]
+                                              for f in seq.frames})  # GPS (--gps, poses.csv lat/lon, EXIF) or by hand
+    for src, dst in tqdm(jobs, desc="copy images", unit="img", disable=None):
+        copy_image(src, dst)
     store_ego_masks(cameras, egos, out)
     write_sequence(seq, out)
     return seq

@@ -337,6 +337,35 @@ def read_oxts(path: str | os.PathLike, first: int = 0, count: int | None = None)
     return make_track(folder, "oxts", rows, absolute=bool(stamps), frames=frames)
 
 
+def _calib_rt(path: Path) -> np.ndarray:
+    """(4, 4) from a KITTI raw calibration file's ``R:`` (9 numbers) and ``T:`` (3 numbers) lines."""
+    vals: dict[str, list[float]] = {}
+    for line in path.read_text(encoding="utf-8").splitlines():
+        key, _, rest = line.partition(":")
+        if key.strip() in ("R", "T"):
+            try:
+                vals[key.strip()] = [float(x) for x in rest.split()]
+            except ValueError:
+                raise SequenceError(path, f"line {key.strip()}: expected numbers") from None
+    if len(vals.get("R", [])) != 9 or len(vals.get("T", [])) != 3:
+        raise SequenceError(path, "expected an 'R:' line of 9 numbers and a 'T:' line of 3 (KITTI raw calibration)")
+    T = np.eye(4)
+    T[:3, :3] = np.reshape(vals["R"], (3, 3))
+    T[:3, 3] = vals["T"]
+    return T
+
+
+def oxts_antenna_in_cam0(path: str | os.PathLike) -> np.ndarray | None:
+    """(3,) the OXTS unit's position in KITTI cam0 coordinates (x right, y down, z forward; metres), from the
+    raw date folder's ``calib_imu_to_velo.txt`` and ``calib_velo_to_cam.txt`` (the folder above the drive);
+    None when they are not there. About 1.1 m behind, 0.3 m left of and 0.7 m below the camera in KITTI."""
+    date_dir = oxts_folder(path).parent.parent
+    imu_velo, velo_cam = date_dir / "calib_imu_to_velo.txt", date_dir / "calib_velo_to_cam.txt"
+    if not (imu_velo.is_file() and velo_cam.is_file()):
+        return None
+    return (_calib_rt(velo_cam) @ _calib_rt(imu_velo))[:3, 3]
+
+
 # ---------------------------------------------------------------------------- dispatch
 
 
@@ -355,5 +384,5 @@ def read_gps(path: str | os.PathLike) -> GpsTrack:
     raise SequenceError(p, "unknown GPS format; give a .gpx, an NMEA log (.nmea) or a .csv with lat, lon, time")
 
 
-__all__ = ["GpsTrack", "csv_has_gps", "exif_fix", "make_track", "oxts_folder", "read_exif_gps", "read_gps",
-           "read_gps_csv", "read_gpx", "read_nmea", "read_oxts"]
+__all__ = ["GpsTrack", "csv_has_gps", "exif_fix", "make_track", "oxts_antenna_in_cam0", "oxts_folder",
+           "read_exif_gps", "read_gps", "read_gps_csv", "read_gpx", "read_nmea", "read_oxts"]

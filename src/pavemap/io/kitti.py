@@ -42,13 +42,16 @@ from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, list_imag
 from pavemap.io.sequence import SequenceError, check_intrinsics, save_depth, write_sequence
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
-#: Odometry sequence -> (raw drive, raw frame of odometry frame 0), from the odometry devkit's readme:
-#: the OXTS (GPS/IMU) records of ``--oxts`` are the raw drive's, offset by that frame.
-KITTI_RAW: dict[str, tuple[str, int]] = {
-    "00": ("2011_10_03_drive_0027", 0), "01": ("2011_10_03_drive_0042", 0), "02": ("2011_10_03_drive_0034", 0),
-    "03": ("2011_09_26_drive_0067", 0), "04": ("2011_09_30_drive_0016", 0), "05": ("2011_09_30_drive_0018", 0),
-    "06": ("2011_09_30_drive_0020", 0), "07": ("2011_09_30_drive_0027", 0), "08": ("2011_09_30_drive_0028", 1100),
-    "09": ("2011_09_30_drive_0033", 0), "10": ("2011_09_30_drive_0034", 0),
+#: Odometry sequence -> (raw drive, raw frame of odometry frame 0, raw frame of its last frame), the table of
+#: the odometry devkit's readme (checked against several public copies of it): the OXTS (GPS/IMU) records of
+#: ``--oxts`` are the raw drive's, offset by the start. 03's raw drive is not published.
+KITTI_RAW: dict[str, tuple[str, int, int]] = {
+    "00": ("2011_10_03_drive_0027", 0, 4540), "01": ("2011_10_03_drive_0042", 0, 1100),
+    "02": ("2011_10_03_drive_0034", 0, 4660), "03": ("2011_09_26_drive_0067", 0, 800),
+    "04": ("2011_09_30_drive_0016", 0, 270), "05": ("2011_09_30_drive_0018", 0, 2760),
+    "06": ("2011_09_30_drive_0020", 0, 1100), "07": ("2011_09_30_drive_0027", 0, 1100),
+    "08": ("2011_09_30_drive_0028", 1100, 5170), "09": ("2011_09_30_drive_0033", 0, 1590),
+    "10": ("2011_09_30_drive_0034", 0, 1200),
 }
 #: KITTI camera frame (x right, y down, z forward) → pavemap world (x forward, y left, z up).
 A_KITTI_TO_WORLD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -265,8 +268,13 @@ def import_kitti(
                     save_depth(tmp, d)
         frames.append(Frame(int(i), float(times[i]), {name: View(name, rel, T_world[k], None, depth_rel)}))
     seq = Sequence(f"kitti-{sequence}", list(classes or DEFAULT_CLASSES), {name: cam}, frames)
-    if geo is not None and geo.oxts_first is None and sequence in KITTI_RAW:
-        geo.oxts_first = KITTI_RAW[sequence][1]
+    if geo is not None and geo.gps is not None and Path(geo.gps).is_dir() and geo.oxts_first is None \
+            and sequence in KITTI_RAW:
+        drive, first, last = KITTI_RAW[sequence]
+        if last - first + 1 != len(T_all):  # another sequence under a devkit number: the offset would be wrong
+            raise SequenceError(poses_file, f"{len(T_all)} poses, but odometry {sequence} ({drive}) has "
+                                f"{last - first + 1}: give --oxts-first for the OXTS record of frame 0")
+        geo.oxts_first = first
     attach_geo(seq, geo)
     write_sequence(seq, out)
     return seq
