@@ -109,6 +109,7 @@ JSON_CASES = [
     ("index decreasing", _decreasing, ["frames[2].index", "decreases"]),
     ("index repeated", _repeat, ["frames[1].index", "repeats"]),
     ("timestamp a string", _set("frames.0.timestamp", "noon"), ["frames[0].timestamp", "number"]),
+    ("timestamps out of order", _set("frames.2.timestamp", -5.0), ["frames[2].timestamp", "out of order in time"]),
     ("unknown camera", _unknown_camera, ["frames[0].views.CAM_BACK", "unknown camera"]),
     ("width a string", _set(f"cameras.{CAM}.width", "32"), [f"cameras.{CAM}.width", "integer"]),
     ("width 0", _set(f"cameras.{CAM}.width", 0), [f"cameras.{CAM}.width"]),

@@ -169,3 +169,32 @@ def test_paint_from_image_finds_a_white_line():
     cover = box_paint_cover(p, np.array([[20.0, 30.0, 52.0, 59.0], [60.0, 30.0, 79.0, 59.0]]))
     assert cover[0] > 0.9 and cover[1] == 0.0
 
+
+
+def test_stage_one_and_ground_points_leave_the_ego_vehicle_out(bonnet_drive, tmp_path):
+    """Issue 13 item 1: the bonnet is excluded from stage-1 training pixels (at the training scale) and from
+    the ground-point corners, not only from SfM."""
+    import shutil
+
+    from pavemap.io.egomask import ego_mask_at, write_ego_mask
+    from pavemap.io.sequence import write_sequence
+    from pavemap.mesh.data import build_pool
+
+    truth, bonnet_images, _, bonnet = bonnet_drive
+    root = tmp_path / "seq"
+    shutil.copytree(truth.root, root)
+    for p in bonnet_images:
+        shutil.copyfile(p, root / "images" / "CAM_FRONT" / p.name)
+    seq = read_sequence(root)
+    views = [(f.index, f.views["CAM_FRONT"]) for f in seq.frames[:3]]
+    before = build_pool(seq, views, 0.25, np.full(256, -1), False, False)
+    seq.cameras["CAM_FRONT"].ego_mask = write_ego_mask(bonnet, root, "CAM_FRONT")
+    write_sequence(seq, root)
+    seq = read_sequence(root)
+    cam = seq.cameras["CAM_FRONT"].scaled(0.25)
+    small = ego_mask_at(seq, "CAM_FRONT", cam.width, cam.height)
+    assert small.shape == (cam.height, cam.width) and abs(small.mean() - bonnet.mean()) < 0.02
+    after = build_pool(seq, views, 0.25, np.full(256, -1), False, False)
+    uv = after.uv.numpy().astype(int)
+    assert not small[uv[:, 1], uv[:, 0]].any()
+    assert len(before) - len(after) == pytest.approx(3 * small.sum(), rel=0.01)

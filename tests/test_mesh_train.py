@@ -21,7 +21,8 @@ from pavemap.synth import perturb_poses, pose_errors
 
 def _cfg(**kw) -> MeshConfig:
     base = dict(resolution=0.1, crop_m=4.0, epochs=3, render_scale=1.0, eval_scale=1.0, pixels_per_step=512,
-                holdout_every=3, device="cpu", threads=1, resume=False)
+                holdout_every=3, device="cpu", threads=1, resume=False,
+                view_range_m=0.0)  # the unit scene: road statistics around its trajectory only
     base.update(kw)
     return MeshConfig(**base)
 
@@ -43,6 +44,27 @@ def test_grid_crop_counts():
         ((v[:-1, :-1] & v[1:, 1:]) & (v[:-1, 1:] ^ v[1:, :-1])).sum()
     one = build_grid(np.array([[5.0, 5.0]]), 0.1, 1.0)  # a one-frame trajectory: a disc
     assert abs(one.vertices - np.pi * 1.05**2 / 0.01) / one.vertices < 0.05  # crop + half-cell slack
+
+
+def test_grid_covers_the_road_the_end_frames_look_at():
+    """Issue 12 item 4: a forward camera at the last frame sees road 20-40 m past the trajectory's end."""
+    from pavemap.mesh.setup import view_paths
+    from pavemap.types import View
+
+    traj = np.array([[0.0, 0.0], [10.0, 0.0]])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)  # camera +z = world +x (forward)
+    T[:3, 3] = [10.0, 0.0, 1.6]
+    down = T.copy()
+    down[:3, :3] = np.array([[0, 0, 0.2], [-1, 0, 0], [0, -1, -0.98]], dtype=float)  # looking at its feet
+    paths = view_paths([View("front", "x.png", T), View("down", "y.png", down)], 30.0)
+    assert len(paths) == 1 and np.allclose(paths[0], [[10.0, 0.0], [40.0, 0.0]])
+    g = build_grid(traj, 0.1, 2.0, paths)
+    X, Y = g.spec.centres()
+    ahead = (X > 20) & (X < 39) & (np.abs(Y) < 1.9)
+    assert ahead.any() and g.valid[ahead].all() and not g.valid[(X > 42.2)].any()
+    assert not build_grid(traj, 0.1, 2.0).valid.shape[1] > 150  # without it: the trajectory's crop only
+    assert view_paths([View("front", "x.png", T)], 0.0) == []
 
 
 def test_height_mlp_matches_spec():

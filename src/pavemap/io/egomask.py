@@ -193,6 +193,20 @@ def load_ego_mask(seq_root: str | os.PathLike | None, rel: str | None, width: in
     return read_ego_mask(Path(seq_root) / rel, width, height)
 
 
+def ego_mask_at(seq: object, camera: str, width: int, height: int) -> np.ndarray | None:
+    """The camera's stored ego mask resampled to ``width`` x ``height`` (nearest), (height, width) bool; None
+    when the camera has none. What stage 1 and the ground points leave out (``seq`` a Sequence)."""
+    cam = seq.cameras[camera]  # type: ignore[attr-defined]
+    full = load_ego_mask(getattr(seq, "root", None), cam.ego_mask, cam.width, cam.height)
+    if full is None or not full.any():
+        return None
+    if full.shape == (height, width):
+        return full
+    ys = np.minimum((np.arange(height) + 0.5) * full.shape[0] / height, full.shape[0] - 1).astype(np.int64)
+    xs = np.minimum((np.arange(width) + 0.5) * full.shape[1] / width, full.shape[1] - 1).astype(np.int64)
+    return full[ys[:, None], xs[None, :]]
+
+
 def resolve_ego_mask(spec: str | os.PathLike | None, images: list[Path], width: int, height: int,
                      default_auto: bool) -> tuple[np.ndarray | None, EgoMaskReport]:
     """The ego mask an import asks for: ``spec`` "auto", "none", a mask image, or None (= ``default_auto``).

@@ -116,6 +116,7 @@ def sequence_from_dict(d: object, root: Path | None = None) -> Sequence:
 
     frames: list[Frame] = []
     last_index: int | None = None
+    last_t: float | None = None
     for fi, f in enumerate(d["frames"]):
         where = f"frames[{fi}]"
         index = int(f["index"])
@@ -123,7 +124,11 @@ def sequence_from_dict(d: object, root: Path | None = None) -> Sequence:
             raise SequenceError(file, f"{where}.index: repeats frame index {index}")
         if last_index is not None and index < last_index:
             raise SequenceError(file, f"{where}.index: {index} decreases (previous {last_index})")
-        last_index = index
+        t = float(f.get("timestamp", float(index)))
+        if last_t is not None and t < last_t:  # pose interpolation, GPS matching and the EMA all assume time order
+            raise SequenceError(file, f"{where}.timestamp: {t} is earlier than frame {last_index}'s {last_t}: frames "
+                                "out of order in time (frame indices must follow the capture time)")
+        last_index, last_t = index, t
         views: dict[str, View] = {}
         for cam, v in f["views"].items():
             vwhere = f"{where}.views.{cam}"
@@ -134,7 +139,7 @@ def sequence_from_dict(d: object, root: Path | None = None) -> Sequence:
             if why:
                 raise SequenceError(file, f"{vwhere}.T_world_cam: {why}")
             views[cam] = View(cam, v["image"], T, v.get("semantics"), v.get("depth"))
-        frames.append(Frame(index, float(f.get("timestamp", float(index))), views))
+        frames.append(Frame(index, t, views))
 
     geo, geo_origin = d.get("geo_origin"), None
     if geo is not None:

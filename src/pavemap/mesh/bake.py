@@ -92,6 +92,47 @@ def bake_colours(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dis
 
 
 @torch.no_grad()
+def pixel_residuals(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, rgb: torch.Tensor,
+                    batch: int = 262144) -> torch.Tensor:
+    """(N,) float32 colour distance (RGB in [0, 1], Euclidean) between each pool pixel and the surface's colour
+    where its ray lands, interpolated from the vertex colours ``rgb`` (ny, nx, 3); NaN where the ray misses."""
+    nx = surface.heights.shape[1]
+    bounds = surface_bounds(surface, pool.uv.dtype)
+    flat = rgb.reshape(-1, 3).double()
+    out = torch.full((len(pool),), float("nan"), dtype=torch.float32, device=rgb.device)
+    for s in range(0, len(pool), batch):
+        sl = slice(s, s + batch)
+        o, d = view_rays(pool.K, T, pool.view[sl], pool.uv[sl])
+        cells = find_hits(surface, o, d, max_dist, bounds=bounds)
+        if cells.idx.numel() == 0:
+            continue
+        hit = hits_to_rayhit(surface, o, d, cells)
+        rows = cells.idx
+        pred = (hit.bary[rows].double()[..., None] * flat[cells.vertex_ids(nx)]).sum(1)
+        r = torch.linalg.norm(pool.rgb[sl][rows].double() / 255.0 - pred, dim=1)
+        out[s + rows] = r.float()
+    return out
+
+
+@torch.no_grad()
+def static_pixels(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, cutoff: float,
+                  rounds: int = 2, fill_sigma: float = 1.0) -> torch.Tensor:
+    """(N,) bool: the pool pixels that agree with the road the other views see; False for a moving object.
+
+    A vehicle passing the camera covers a road vertex in a few views only: bake the colours, drop the pixels
+    whose colour is more than ``cutoff`` (RGB distance in [0, 1]) from the baked road where they land, and
+    bake again without them (``rounds`` times), so the majority of views decides. Pixels that miss the surface
+    stay True (they are not evidence either way).
+    """
+    keep = torch.ones(len(pool), dtype=torch.bool, device=pool.view.device)
+    for _ in range(rounds):
+        rgb, _, _ = bake_colours(surface, pool.subset(keep), T, max_dist, fill_sigma)
+        r = pixel_residuals(surface, pool, T, max_dist, rgb)
+        keep = ~(r > cutoff)  # NaN (a miss) compares False: kept
+    return keep
+
+
+@torch.no_grad()
 def bake_into(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, fill: float, max_dist: float,
               fill_sigma: float = 1.0, sharpen_iters: int = 0) -> torch.Tensor:
     """Replace the model's vertex colours by the baked ones on its current surface (where any pixel reaches

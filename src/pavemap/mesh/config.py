@@ -34,6 +34,9 @@ class MeshConfig:
 
     resolution: float = 0.1  # m per cell
     crop_m: float = 7.0  # keep vertices within this distance of the camera trajectory
+    # ... and of the road the first and last frames' cameras look at, this far along their view direction
+    # (a forward camera's detections 20-40 m past the last frame need a surface there; 0: trajectory only)
+    view_range_m: float = 30.0
     pe_levels: int = 5  # L of the positional encoding (5 nuScenes, 4 KITTI)
     hidden: int = 128
     epochs: int = 7
@@ -113,6 +116,10 @@ class MeshConfig:
     # Closed-form colours on the current surface (pavemap.mesh.bake) before the first step and after the last:
     # in a CPU budget Adam alone leaves the colours noisier than the surface supports.
     bake_init: bool = True
+    # Pixels whose colour differs from the road the other views see by more than this (RGB distance, 0-1 scale)
+    # after the initial bake are left out of training (pavemap.mesh.bake.static_pixels): a vehicle passing the
+    # camera paints itself onto the road in a few views only. 0: keep every pixel.
+    moving_cutoff: float = 0.0
     bake_final: bool = True
     # Jacobi steps from the weighted mean towards the least-squares colours in the final bake (bake_colours):
     # the mean blurs, the exact solution overfits single pixels.
@@ -151,8 +158,9 @@ class MeshConfig:
                      "camera_height_warn_frac", "ground_points_scale", "check_max_bias_m", "check_max_rms_m"):
             _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
-                     "pose_align_rounds", "seed", "init_fine_cell_m", "init_along_fill_m", "lr_rgb", "lr_sem",
-                     "lr_height", "lr_pose", "lr_pose_rot", "w_rgb", "w_sem", "w_depth", "w_smooth"):
+                     "pose_align_rounds", "seed", "init_fine_cell_m", "view_range_m", "moving_cutoff",
+                     "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height", "lr_pose", "lr_pose_rot", "w_rgb", "w_sem",
+                     "w_depth", "w_smooth"):
             _require(self, name, lambda v: v >= 0, "must be >= 0")
         for name in ("frame_stride", "pixels_per_step", "height_pixels_per_step", "hidden", "pose_bake_every",
                      "pose_align_pixels_per_view", "height_refresh_steps", "max_bad_steps", "ground_points_corners"):

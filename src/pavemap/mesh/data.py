@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from pavemap.io.egomask import ego_mask_at
 from pavemap.io.sequence import load_depth, load_rgb, load_semantics
 from pavemap.types import Sequence, View
 
@@ -115,6 +116,9 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
             keep = np.ones(size[::-1], dtype=bool)
             ch = np.full(size[::-1], -1, dtype=np.int64)
             rd = np.ones(size[::-1], dtype=bool)  # without semantics the mesh footprint is the road
+        ego = ego_mask_at(seq, v.camera, size[0], size[1])
+        if ego is not None:  # the bonnet moves with the camera: its pixels are not road at any height
+            keep = keep & ~ego
         uvmap = None
         if use_depth and v.depth:
             raw = load_depth(seq.path(v.depth))

@@ -36,6 +36,7 @@ from pavemap.geometry.triangulate import (
     triangulate_tracks,
     within_corridor,
 )
+from pavemap.io.egomask import ego_mask_at
 from pavemap.io.sequence import load_rgb, load_semantics
 from pavemap.types import Camera, Sequence, View
 
@@ -147,6 +148,8 @@ def _load(seq: Sequence, vd: _ViewData, view: View, cfg: GroundConfig, ground_lu
         vd.label_ok = cv2.erode(ground_lut[lab].astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         vd.road = road_lut[lab]
         mask &= vd.label_ok
+    if (ego := ego_mask_at(seq, view.camera, size[0], size[1])) is not None:  # the bonnet moves with the camera
+        mask &= ~cv2.dilate(ego.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
     vd.grey, vd.mask = grey, mask
 
 

@@ -11,6 +11,7 @@ carry no hidden offset. RGB (init N(0, 0.01)) and semantic logits (init 0) are p
 from __future__ import annotations
 
 import math
+import typing
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,21 +47,29 @@ class MeshGrid:
         return np.stack([g.x0 + (vid % g.nx) * g.res, g.y0 + (vid // g.nx) * g.res], 1)
 
 
-def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float) -> MeshGrid:
+def _dense_polyline(t: np.ndarray, step: float) -> np.ndarray:
+    """(F, 2) polyline -> (M, 2) points along it at most ``step`` apart (its vertices included)."""
+    pts = [t[:1]]
+    for a, b in zip(t[:-1], t[1:], strict=True):
+        n = max(2, int(math.ceil(np.linalg.norm(b - a) / step)) + 1)
+        pts.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
+    return np.concatenate(pts)
+
+
+def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float,
+               extra_paths: typing.Sequence[np.ndarray] = ()) -> MeshGrid:
     """Grid over the trajectory's bounding box grown by ``crop_m``; keep vertices within ``crop_m`` of it.
 
     trajectory_xy: (F, 2) rig positions in order; the distance is to the polyline through them
-    (a one-frame sequence gives a disc). Origin snapped to multiples of ``res``.
+    (a one-frame sequence gives a disc). ``extra_paths``: more (K, 2) polylines kept the same way (the
+    road the end frames' cameras look at beyond the trajectory). Origin snapped to multiples of ``res``.
     """
     t = np.asarray(trajectory_xy, dtype=np.float64).reshape(-1, 2)
-    spec = GridSpec.covering(t.min(0) - crop_m, t.max(0) + crop_m, res)
+    # Rasterise the polylines densely (half-cell spacing), then an exact Euclidean distance transform.
+    p = np.concatenate([_dense_polyline(q, 0.5 * res) for q in
+                        (t, *(np.asarray(e, dtype=np.float64).reshape(-1, 2) for e in extra_paths))])
+    spec = GridSpec.covering(p.min(0) - crop_m, p.max(0) + crop_m, res)
     lo = np.array([spec.x0, spec.y0])
-    # Rasterise the polyline densely (half-cell spacing), then an exact Euclidean distance transform.
-    pts = [t[:1]]
-    for a, b in zip(t[:-1], t[1:], strict=True):
-        n = max(2, int(math.ceil(np.linalg.norm(b - a) / (0.5 * res))) + 1)
-        pts.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
-    p = np.concatenate(pts)
     ij = np.rint((p - lo) / res).astype(np.int64)
     seeds = np.ones(spec.shape, dtype=bool)
     seeds[np.clip(ij[:, 1], 0, spec.ny - 1), np.clip(ij[:, 0], 0, spec.nx - 1)] = False

@@ -69,7 +69,8 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) ->
     for fi, v in train_views + held_views:
         centres.setdefault(fi, []).append(v.T_world_cam[:3, 3])
     traj = np.array([np.mean(centres[k], axis=0) for k in sorted(centres)])
-    grid = build_grid(traj[:, :2], cfg.resolution, cfg.crop_m)
+    ends = [v for fi, v in train_views + held_views if fi in (min(centres), max(centres))]
+    grid = build_grid(traj[:, :2], cfg.resolution, cfg.crop_m, view_paths(ends, cfg.view_range_m))
     if grid.vertices < 3 or grid.faces == 0:
         raise PavemapError("the trajectory crop holds no triangle; check crop_m and resolution")
 
@@ -79,6 +80,18 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) ->
     if use_sem and int((epool.channel >= 0).sum()) == 0:
         warn("held-out views carry no labelled pixels: semantic accuracy is undefined")
     return TrainData(pool, epool, grid, traj, classes, use_sem, use_depth, bool(held_views))
+
+
+def view_paths(views: list, range_m: float) -> list[np.ndarray]:
+    """(2, 2) segments from each view's camera centre ``range_m`` along its horizontal view direction (views
+    looking steeply up or down give none): where the end frames see road beyond the trajectory."""
+    out = []
+    for v in views if range_m > 0 else []:
+        c, axis = v.T_world_cam[:3, 3], v.T_world_cam[:3, 2]  # optical axis: camera +z (x right, y down)
+        h = np.hypot(axis[0], axis[1])
+        if h > 0.5:  # within 60 degrees of horizontal
+            out.append(np.array([c[:2], c[:2] + range_m * axis[:2] / h]))
+    return out
 
 
 @torch.no_grad()

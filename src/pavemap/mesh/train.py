@@ -71,6 +71,7 @@ class _Run:
     n_groups: int = 0  # pose correction groups (frames or views)
     done: Resumed = dataclasses.field(default_factory=lambda: Resumed(0, [], 0.0))
     align_log: list[dict] = dataclasses.field(default_factory=list)
+    moving_share: float = 0.0  # training pixels left out as moving objects (_drop_moving)
 
     def warn(self, msg: str) -> None:
         self.notes.append(msg)
@@ -102,6 +103,8 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     if fit.poses is not None and cfg.pose_align_iters > 0 and run.done.epoch == 0:
         delta0, run.align_log = _align_stage(fit, run)
         fit.poses.set(delta0)
+    if cfg.moving_cutoff > 0:
+        _drop_moving(fit, run)
     if cfg.bake_init and run.done.epoch == 0:
         bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma)
     history, schedule = _train(fit, run, out_dir, progress)
@@ -109,6 +112,23 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     if out_dir is not None:
         write_outputs(Path(out_dir), mesh, metrics, data.classes)
     return mesh, metrics
+
+
+def _drop_moving(fit: Fit, run: _Run) -> None:
+    """Leave out of training the pixels that disagree with the road the other views see (moving objects)."""
+    from pavemap.mesh.bake import static_pixels
+
+    m = fit.model
+    keep = static_pixels(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), fit.cfg.max_dist,
+                         fit.cfg.moving_cutoff, fill_sigma=fit.cfg.bake_fill_sigma)
+    dropped = int((~keep).sum())
+    run.moving_share = dropped / max(1, len(fit.pool))
+    if dropped:
+        fit.pool = fit.pool.subset(keep)
+        if run.moving_share > 0.01:
+            run.warn(f"{100 * run.moving_share:.1f} % of the training pixels disagree with the road the other views "
+                     "see (moving vehicles, or a surface still far off) and are left out of the texture and the "
+                     "height fit")
 
 
 def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: dict[str, int]
@@ -121,7 +141,8 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
                          sharpen_iters=cfg.bake_sharpen_iters)
     mesh = to_road_mesh(fit.model, data.class_ids, data.use_sem)
     metrics = {**stage_metrics(fit, data, mesh, run.fill, _eval_delta(fit, data), seen, seq.root),
-               "device": str(run.device), "epochs": cfg.epochs, **schedule, "camera_height_init": run.cam_h}
+               "device": str(run.device), "epochs": cfg.epochs, **schedule, "camera_height_init": run.cam_h,
+               "moving_pixel_share": round(run.moving_share, 5)}
     mesh.observed = _observed(fit, run, seen)
     s = mesh.surface
     metrics["geometry"] = self_check(run.geo, data.grid.spec, s.heights.detach().cpu().numpy(),
