@@ -123,7 +123,8 @@ def _root(
     """pavemap: road defect mapping. Run `pavemap demo` for a full example on synthetic data."""
 
 
-COMMAND_MODULES = ("info", "synth", "detect", "reconstruct", "fuse", "imports", "train", "run", "compare", "config")
+COMMAND_MODULES = ("info", "synth", "detect", "reconstruct", "fuse", "imports", "train", "run", "compare", "config",
+                   "batch", "register")
 
 for _name in COMMAND_MODULES:
     _mod = f"pavemap.commands.{_name}"

@@ -95,7 +95,9 @@ def _collect(layer: DefectLayer, to_common=None) -> _Defects:
         geoms.append(g)
         cents.append(cxy)
         areas.append(area)
-        sevs.append(_num(p.get("severity", p.get("severity_mean"))))
+        # the paper's EMA severity: paper_severity since issue 16, severity in older files
+        sevs.append(_num(next((p[k] for k in ("paper_severity", "severity", "severity_mean") if p.get(k) is not None),
+                              None)))
         clss.append(_cls_of(p))
         ids.append(p.get("id"))
         props.append(p)
@@ -103,16 +105,32 @@ def _collect(layer: DefectLayer, to_common=None) -> _Defects:
                     np.asarray(sevs, dtype=np.float64), np.asarray(clss, dtype=np.int64), ids, props)
 
 
-def match_defects(a: _Defects, b: _Defects, match_m: float) -> list[tuple[int, int, float]]:
+def match_defects(a: _Defects, b: _Defects, match_m: float, by_class: bool = False) -> list[tuple[int, int, float]]:
     """Greedy one-to-one pairs (i in a, j in b, centroid distance), closest first.
 
-    The same rule as the ground-truth evaluation (:func:`pavemap.evaluate.gt.match`).
+    The same rule as the ground-truth evaluation (:func:`pavemap.evaluate.gt.match`). ``by_class``
+    (the network register): pairs of the same class are made first, then the rest among what is left,
+    so a defect the detector labelled differently on another drive still pairs, but never ahead of a
+    same-class candidate.
     """
     from pavemap.evaluate.gt import match
 
     ga = [g if g is not None else shapely.Point() for g in a.geoms]
     gb = [g if g is not None else shapely.Point() for g in b.geoms]
-    return match(ga, a.centroids, gb, b.centroids, match_m)
+    if not by_class:
+        return match(ga, a.centroids, gb, b.centroids, match_m)
+
+    def sub(ia: np.ndarray, ib: np.ndarray) -> list[tuple[int, int, float]]:
+        found = match([ga[k] for k in ia], a.centroids[ia], [gb[k] for k in ib], b.centroids[ib], match_m)
+        return [(int(ia[i]), int(ib[j]), d) for i, j, d in found]
+
+    pairs: list[tuple[int, int, float]] = []
+    for c in np.unique(a.cls):
+        pairs += sub(np.flatnonzero(a.cls == c), np.flatnonzero(b.cls == c))
+    rest_a = np.setdiff1d(np.arange(len(ga)), [p[0] for p in pairs]).astype(np.int64)
+    rest_b = np.setdiff1d(np.arange(len(gb)), [p[1] for p in pairs]).astype(np.int64)
+    pairs += sub(rest_a, rest_b)
+    return sorted(pairs, key=lambda p: (p[2], p[0]))
 
 
 def _classify(a: _Defects, b: _Defects, i: int, j: int, grow_ratio: float) -> tuple[str, list[str]]:

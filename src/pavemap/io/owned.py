@@ -268,6 +268,9 @@ def claim(out: str | os.PathLike, kind: str, overwrite: bool, inputs: Iterable[s
         raise PavemapError(f"{out}: folder is not empty and was not written by pavemap (no {MARKER}); "
                            + ("--overwrite only replaces a folder pavemap wrote; " if overwrite else "")
                            + "choose a new or empty folder")
+    if owner is not None and owner.get("status") == "failed" and not owner.get("files"):
+        kept = remove_owned(out, owner)  # a failed job that left nothing but its marker: free to reuse
+        owner = None
     if owner is not None:
         if same is not None and same(owner):
             files = {r for r in owner.get("files", []) if isinstance(r, str)}

@@ -1,0 +1,110 @@
+"""Many drives: one after another vs a dask LocalCluster of 2 worker processes -> bench/results/network.json.
+
+Drives: one synthetic kitti-like world (24 frames at 4 Hz, half-resolution images), driven in up to
+4 surveys by 2 vehicles (right and left lane): 8 distinct drives, of which the first 2, 4 and 8 make the
+three networks. Config: the test's light one (tests/test_network.py). Each (network, mode) runs in a fresh
+process into a fresh network folder, so nothing is reused and each peak RSS is its own.
+
+Reported per network: wall seconds of the batch (serial: the drives one by one in one process, one torch
+thread, the same task function; dask: including the cluster's start), speedup, peak RSS per worker
+process (MiB, from the tasks' ``getrusage``), register build time, and the machine's load (``uptime``)
+before and after, since the 2 cores are shared.
+
+    nice -n 10 .venv/bin/python bench/network_bench.py [--sizes 2,4,8] [--data /tmp/pavemap-network-bench]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "bench"))
+
+SURVEYS = 4  # x 2 vehicles = 8 drives
+
+
+def _drives(data: Path) -> list[dict]:
+    """The 8 drives (synthesised once; kept in ``data`` between bench runs)."""
+    from pavemap.synth import synthesize
+    from test_network import WORLD
+
+    out = []
+    for k in range(SURVEYS):
+        for lane, vehicle in ((0, "van1"), (1, "van2")):
+            name = f"s{k}-{vehicle}"
+            seq = data / "seqs" / name
+            if not (seq / "sequence.json").is_file():
+                synthesize(seq, **WORLD, survey=k, ego_lane=lane, overwrite=True)
+            out.append({"path": str(seq), "date": f"2026-{1 + 3 * k:02d}-05", "name": name, "vehicle": vehicle})
+    return out
+
+
+def _one(mode: str, manifest: Path, net: Path) -> dict:
+    """Run one batch in this (fresh) process; print its figures as JSON."""
+    from pavemap.network.batch import run_batch
+
+    t = time.perf_counter()
+    s = run_batch(manifest, net, scheduler="serial" if mode == "serial" else None,
+                  workers=None if mode == "serial" else 2, echo=lambda _: None)
+    wall = time.perf_counter() - t
+    peak: dict[str, float] = {}
+    for e in s["drives"]:
+        peak[e.get("worker", "?")] = max(peak.get(e.get("worker", "?"), 0.0), float(e.get("peak_rss_mb") or 0))
+    reg = s.get("register") or {}
+    return {"wall_s": round(wall, 2), "batch_s": s.get("batch_seconds"), "failed": s["failed"],
+            "peak_rss_mb_per_worker": sorted(peak.values(), reverse=True), "register_s": reg.get("seconds"),
+            "register_defects": reg.get("defects"), "observations": reg.get("observations"),
+            "drive_seconds": [e.get("seconds") for e in s["drives"]]}
+
+
+def _load() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def main() -> None:
+    from common import machine_entry, write_results
+    from test_network import OVERRIDES
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="2,4,8")
+    ap.add_argument("--data", type=Path, default=Path("/tmp/pavemap-network-bench"))
+    ap.add_argument("--results", type=Path, default=ROOT / "bench" / "results" / "network.json")
+    ap.add_argument("--one", nargs=3, metavar=("MODE", "MANIFEST", "NET"), help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.one:
+        print(json.dumps(_one(a.one[0], Path(a.one[1]), Path(a.one[2]))))
+        return
+    drives = _drives(a.data)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
+    rows = []
+    for n in (int(v) for v in a.sizes.split(",")):
+        manifest = a.data / f"manifest-{n}.yaml"
+        manifest.write_text(json.dumps({"config": "kitti", "set": OVERRIDES, "drives": drives[:n]}))  # JSON is YAML
+        row: dict = {"drives": n, "load_before": _load()}
+        for mode in ("serial", "dask-2-workers"):
+            net = a.data / f"net-{n}-{mode}"
+            shutil.rmtree(net, ignore_errors=True)  # the bench's own folder: every drive is run afresh
+            p = subprocess.run([sys.executable, __file__, "--one", mode, str(manifest), str(net)],
+                               capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+            if p.returncode:
+                raise SystemExit(f"{mode} with {n} drives failed:\n{p.stderr[-3000:]}")
+            row[mode] = json.loads(p.stdout.strip().splitlines()[-1])
+            print(n, mode, row[mode], flush=True)
+        row["speedup"] = round(row["serial"]["wall_s"] / row["dask-2-workers"]["wall_s"], 2)
+        row["load_after"] = _load()
+        rows.append(row)
+    write_results(a.results, {**machine_entry(), "commit": commit, "target_speedup": 1.7, "networks": rows,
+                              "note": "2-core machine shared with other jobs; see load_before/after"})
+
+
+if __name__ == "__main__":
+    main()
