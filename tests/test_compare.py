@@ -22,7 +22,7 @@ from pavemap.types import DefectInstance, GeoOrigin
 def inst(i, poly, cls=0, sev=0.3):
     return DefectInstance(id=i, cls=cls, polygon=poly, severity_mean=sev, severity_max=sev, confidence=0.5,
                           observations=3, probability=0.5, area_m2=float(poly.area), length_m=1.0,
-                          centroid=(poly.centroid.x, poly.centroid.y), priority="inspect")
+                          centroid=(poly.centroid.x, poly.centroid.y), priority="schedule")
 
 
 def survey_a():
@@ -139,3 +139,15 @@ def test_errors_and_cli(tmp_path):
     assert r.exit_code == 0, r.output
     assert "new 0  grown 0  unchanged 0  gone 5" in r.output
     assert json.loads((tmp_path / "c" / "changes.json").read_text())["counts"]["gone"] == 5
+
+
+def test_files_from_before_issue_16_carry_severity(tmp_path):
+    """Older defects files name the paper's EMA severity ``severity``; newer ones ``paper_severity``."""
+    write_geojson(tmp_path / "a.geojson", survey_a())
+    write_geojson(tmp_path / "b.geojson", survey_b())
+    old = json.loads((tmp_path / "a.geojson").read_text())
+    for f in old["features"]:
+        f["properties"]["severity"] = f["properties"].pop("paper_severity")
+    (tmp_path / "a.geojson").write_text(json.dumps(old))
+    s = compare_runs(tmp_path / "a.geojson", tmp_path / "b.geojson", tmp_path / "o")
+    assert s["counts"] == {"new": 2, "grown": 3, "unchanged": 1, "gone": 1}  # 13 grew by its severity

@@ -19,7 +19,7 @@ from pavemap.export.geojson import instances_to_geojson, write_geojson
 from pavemap.export.geotiff import BAND_DESCRIPTIONS, write_geotiff
 from pavemap.export.report import build_report_html
 from pavemap.export.sample import sample_inputs
-from pavemap.export.tables import CSV_COLUMNS, write_csv
+from pavemap.export.tables import columns, write_csv
 from pavemap.geometry.grid import GridSpec
 from pavemap.types import DefectInstance, GeoOrigin
 
@@ -27,7 +27,7 @@ GEOD = Geod(ellps="WGS84")
 ORIGIN = GeoOrigin(lat=48.1374, lon=11.5755, alt=520.0, heading_deg=90.0)
 
 
-def inst(i: int, poly, cls: int = 0, prio: str = "inspect") -> DefectInstance:
+def inst(i: int, poly, cls: int = 0, prio: str = "schedule") -> DefectInstance:
     return DefectInstance(id=i, cls=cls, polygon=poly, severity_mean=0.2 + 0.1 * cls, severity_max=0.5,
                           confidence=0.6, observations=3, probability=0.55, area_m2=float(poly.area),
                           length_m=1.0, centroid=(0.0, 0.0) if poly.is_empty else (poly.centroid.x, poly.centroid.y),
@@ -75,7 +75,7 @@ def test_geojson_local_metres():
     assert fc["pavemap"]["coordinates"] == "local" and fc["pavemap"]["geo_origin"] is None
     f = fc["features"][0]
     assert f["properties"]["code"] == "D40" and f["properties"]["name"] == "pothole"
-    for key in ("id", "cls", "code", "name", "severity", "severity_max", "confidence", "observations",
+    for key in ("id", "cls", "code", "name", "paper_severity", "paper_severity_max", "confidence", "observations",
                 "probability", "area_m2", "length_m", "priority"):
         assert key in f["properties"]
     ext, hole = (np.array(r) for r in f["geometry"]["coordinates"])
@@ -188,7 +188,8 @@ def test_csv_and_dataframe(tmp_path):
     p = write_csv(tmp_path / "d.csv", items, ORIGIN)
     rows = list(csv.DictReader(p.open()))
     assert [r["id"] for r in rows] == ["1", "2"]
-    assert list(rows[0]) == [*CSV_COLUMNS, "lon", "lat"]
+    assert list(rows[0]) == list(columns(geo=True))
+    assert list(rows[0])[:3] == ["id", "priority", "priority_rank"] and {"lat", "lon"} <= set(rows[0])
     assert float(rows[0]["area_m2"]) == pytest.approx(2.0) and rows[0]["code"] == "D40"
     assert float(rows[0]["x_m"]) == pytest.approx(5.5)
     df = to_dataframe(items)

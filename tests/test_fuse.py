@@ -236,7 +236,7 @@ def test_instance_stats(plane: HeightField) -> None:
     assert inst.severity_max <= 1.0 and inst.severity_mean > 0.4
     assert math.isclose(inst.area_m2, inst.polygon.area, rel_tol=1e-6)
     assert 0.3 <= inst.length_m <= 0.8
-    assert inst.priority in ("repair now", "inspect", "no action")
+    assert inst.priority == "unassessed"  # urgency is the maintenance stage's (pavemap.maintain.assess)
     assert inst.confidence == pytest.approx(0.6)
 
 

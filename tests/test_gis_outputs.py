@@ -88,6 +88,8 @@ def test_georeferenced_gpkg_layers(geo_run, tiny_seq):
     layers = {name: kind for name, kind in pyogrio.list_layers(gpkg)}
     assert layers["defects"] == "MultiPolygon" and layers["defect_points"] == "Point"
     assert layers["baseline_defects"] == "MultiPolygon" and "trajectory" in layers and "survey" in layers
+    assert layers["segments"] == "MultiPolygon" and {"segment", "pci", "grade"} <= set(
+        pyogrio.read_info(gpkg, layer="segments")["fields"])
     o = tiny_seq.geo_origin
     epsg = utm_epsg(o.lon, o.lat)
     for layer in layers:
@@ -95,7 +97,8 @@ def test_georeferenced_gpkg_layers(geo_run, tiny_seq):
     _, _, geoms, _ = pyogrio.raw.read(gpkg, layer="defects")
     assert len(geoms) > 0 and {shapely.from_wkb(g).geom_type for g in geoms} == {"MultiPolygon"}
     info = pyogrio.read_info(gpkg, layer="defects")
-    assert {"id", "code", "priority", "severity", "area_m2", "lon", "lat", "x_m", "y_m"} <= set(info["fields"])
+    assert {"id", "code", "priority", "priority_rank", "severity_level", "paper_severity", "area_m2", "lon", "lat",
+            "x_m", "y_m"} <= set(info["fields"])
     # the trajectory: one LineString ZM whose M values are the frame timestamps
     wkb = _gpkg_wkb(gpkg, "trajectory")  # pyogrio drops M on reading: the GeoPackage blob itself
     kind, n = struct.unpack_from("<II", wkb, 1)
@@ -204,6 +207,14 @@ def test_run_result_geojson_and_dataframe():
 def test_report_shows_lat_lon_next_to_the_class():
     kw = sample_inputs(3, seed=1, geo=True)
     html = build_report_html(kw["instances"], geo_origin=kw["geo_origin"])
-    heads = [h for h in html.split('<th data-key="')[1:]]
-    keys = [h.split('"', 1)[0] for h in heads]
-    assert keys[:5] == ["id", "code", "priority", "lat", "lon"]
+    worklist, _, rest = html.partition('<table id="worklist-table">')[2].partition("</table>")
+
+    def keys(table: str) -> list[str]:
+        return [h.split('"', 1)[0] for h in table.split('<th data-key="')[1:]]
+
+    # the work list (first screen): lat, lon within the first columns, before the photo
+    wl = keys(worklist)
+    assert "latlon" in wl and wl.index("latlon") < wl.index("photo") and wl.index("latlon") <= 7, wl
+    # the full table: lat / lon right after class and urgency (chainage, when known, between)
+    full = [k for k in keys(rest) if k != "chainage_m"]
+    assert full[:5] == ["id", "code", "priority", "lat", "lon"], full

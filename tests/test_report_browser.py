@@ -47,6 +47,12 @@ def open_page(browser, path: Path, viewport=(1400, 1000)):
     return page, problems
 
 
+def column(page, key: str) -> int:
+    """1-based position of the defects-table column ``key`` (columns come and go with the records' keys)."""
+    keys = page.eval_on_selector_all("#defects thead th", "els => els.map(e => e.dataset.key)")
+    return keys.index(key) + 1
+
+
 def view_width(page) -> float:
     return float(page.get_attribute("#map", "viewBox").split()[2])
 
@@ -64,7 +70,7 @@ def test_report_interactions(browser, tmp_path):
     assert page.locator("#map path.d").count() == n
 
     # default order: priority (repair now first)
-    ranks = [int(v) for v in page.eval_on_selector_all("#defects tbody tr td:nth-child(3)",
+    ranks = [int(v) for v in page.eval_on_selector_all(f"#defects tbody tr td:nth-child({column(page, 'priority')})",
                                                        "els => els.map(e => e.dataset.v)")]
     assert ranks == sorted(ranks)
 
@@ -90,7 +96,7 @@ def test_report_interactions(browser, tmp_path):
 
     # sorting by area (descending on first click)
     page.click('#defects th[data-key="area_m2"]')
-    areas = [float(v) for v in page.eval_on_selector_all("#defects tbody tr td:nth-child(9)",
+    areas = [float(v) for v in page.eval_on_selector_all(f"#defects tbody tr td:nth-child({column(page, 'area_m2')})",
                                                          "els => els.map(e => e.dataset.v)")]
     assert areas == sorted(areas, reverse=True)
 

@@ -70,7 +70,7 @@ def test_run_writes_each_file_once_atomically(counted_run):
     result, out, writes = counted_run
     _assert_written_once_atomically(out, writes)
     for name in ("defects.geojson", "baseline_defects.geojson", "metrics.json", "eval.json", "defects.csv",
-                 "detections_mapped.jsonl", "defect_map.json", "report.html"):
+                 "detections_mapped.jsonl", "defect_map.json", "report.html", "segments.csv", "segments.geojson"):
         assert writes.count[(out / name).resolve()] == 1, name
     assert result.detector.startswith("sim") and "truth" in result.detector  # auto on a synthetic drive
 
@@ -91,6 +91,13 @@ def test_one_defect_schema_in_every_file(counted_run, tiny_seq):
             assert not {"severity_mean", "type", "centre", "centroid"} & set(p)
             assert {"id", "cls", "x_m", "y_m", "area_m2", "length_m"} <= set(p)
     assert set(result.to_geojson()["features"][0]["properties"]) == set(run_fc["features"][0]["properties"])
+    # every run defect is assessed (issue 16): severity level, certainty, urgency and a unique rank
+    props = [f["properties"] for f in run_fc["features"]]
+    assert all(p["severity_level"] in ("low", "medium", "high") and p["priority"] in ("repair now", "schedule",
+               "monitor") and p["certainty"] and p["segment"] >= 1 and "paper_severity" in p for p in props)
+    assert sorted(p["priority_rank"] for p in props) == list(range(1, len(props) + 1))
+    segs = (out / "segments.csv").read_text().splitlines()
+    assert segs[0].startswith("segment,chainage_start_m") and len(segs) >= 2
     assert set(CSV_COLUMNS + GEO_COLUMNS) <= SCHEMA
     header = (out / "defects.csv").read_text().splitlines()[0].split(",")
     assert set(header) <= SCHEMA

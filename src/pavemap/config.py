@@ -1,7 +1,7 @@
 """Run configuration: presets carrying the paper's parameters, and one schema derived from the types.
 
 A config file is YAML with optional sections ``mesh``, ``detector``, ``filter``, ``fusion``,
-``output`` and top-level ``preset`` and ``device``::
+``maintenance``, ``output`` and top-level ``preset`` and ``device``::
 
     preset: nuscenes        # start from a preset, then override
     device: auto
@@ -9,14 +9,15 @@ A config file is YAML with optional sections ``mesh``, ``detector``, ``filter``,
     detector:  {backend: auto, seed: 0}
     filter:    {tau_conf: 0.05, tau_road: 0.5, mask: frame}
     fusion:    {association: hit}
+    maintenance: {policy: "", segment_m: 100}
     output:    {overlay_frames: 3}
 
 The keys of a section are the fields of its dataclass (:class:`pavemap.mesh.MeshConfig`,
 :class:`pavemap.detect.config.DetectorConfig`, :class:`pavemap.detect.config.FilterConfig`,
-:class:`pavemap.fuse.FusionConfig`, :class:`OutputConfig`) and a value is checked against the
-field's type hint (:func:`coerce`), so the schema cannot drift from the code. The same check turns
-command-line text (``--set fusion.hit_radius_m=0.4``) into typed values. After the values are in,
-every section's ``validate()`` range-checks it, so a bad value stops the run before any stage starts.
+:class:`pavemap.fuse.FusionConfig`, :class:`pavemap.maintain.MaintenanceConfig`, :class:`OutputConfig`)
+and a value is checked against the field's type hint (:func:`coerce`), so the schema cannot drift from the
+code. The same check turns command-line text (``--set fusion.hit_radius_m=0.4``) into typed values. After the
+values are in, every section's ``validate()`` range-checks it, so a bad value stops the run before any stage starts.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from pavemap.detect.config import DetectorConfig, FilterConfig
 from pavemap.device import CHOICES as DEVICE_CHOICES
 from pavemap.device import is_device_name
 from pavemap.errors import PavemapError
+from pavemap.maintain.policy import MaintenanceConfig
 
 if TYPE_CHECKING:  # the stage configs import torch through their packages: loaded on first use
     from pavemap.fuse.config import FusionConfig
@@ -48,7 +50,7 @@ if TYPE_CHECKING:  # the stage configs import torch through their packages: load
 
 Preset = Literal["nuscenes", "kitti"]
 PRESETS: tuple[str, ...] = typing.get_args(Preset)
-SECTIONS: tuple[str, ...] = ("mesh", "detector", "filter", "fusion", "output")
+SECTIONS: tuple[str, ...] = ("mesh", "detector", "filter", "fusion", "maintenance", "output")
 TOP_LEVEL: tuple[str, ...] = ("preset", "device")
 
 
@@ -92,7 +94,7 @@ def _section_types() -> dict[str, type]:
     from pavemap.mesh.config import MeshConfig
 
     return {"mesh": MeshConfig, "detector": DetectorConfig, "filter": FilterConfig, "fusion": FusionConfig,
-            "output": OutputConfig}
+            "maintenance": MaintenanceConfig, "output": OutputConfig}
 
 
 def _section_for(section: str, preset: str) -> object:
@@ -110,6 +112,7 @@ class RunConfig:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     filter: FilterConfig = field(default_factory=lambda: FilterConfig.preset("nuscenes"))
     fusion: FusionConfig = field(default_factory=lambda: _section_for("fusion", "nuscenes"))
+    maintenance: MaintenanceConfig = field(default_factory=MaintenanceConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict:

@@ -70,6 +70,7 @@ class RunResult:
     preset: str = ""  # the preset the run started from, and why (when chosen from the rig)
     detector: str = ""  # the backend that ran, and why (``auto`` resolved)
     warnings: list[str] = field(default_factory=list)  # the run's warnings (also in run.log)
+    segments: list = field(default_factory=list)  # road segments with their PCI-like index (pavemap.maintain)
 
     def to_geojson(self) -> dict:
         """The defects as written to ``defects.geojson``: WGS84 lon/lat (RFC 7946); PavemapError without a
@@ -269,6 +270,12 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
     from pavemap.mesh.geometry import mark_observed
 
     mark_observed(result.instances, mesh)  # a defect on ground no view observed says so (issue 12)
+    from pavemap.maintain import assess, summary
+
+    m = cfg.maintenance  # what to repair first (issue 16): measures, severity, urgency, road segments
+    result.segments = assess(result.instances, seq, mesh.surface, result.instance_labels, mesh.observed,
+                             policy=m.policy, segment_m=m.segment_m, lane_width_m=m.lane_width_m)
+    result.metrics["maintenance"] = summary(result.instances, result.segments)
     timings["fuse"] = time.perf_counter() - t
     stages.mark("fuse", hash_parts(key, dataclasses.asdict(cfg.filter), dataclasses.asdict(cfg.fusion)),
                 timings["fuse"])
@@ -310,6 +317,7 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
         evaluation=evaluation,
         files=files,
         geo_origin=seq.geo_origin,
+        segments=result.segments,
     )
 
 

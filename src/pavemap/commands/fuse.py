@@ -97,6 +97,13 @@ def register(app: typer.Typer) -> None:
             folder.remove_own("metrics.json")  # an earlier result's completion marker, until this one is done
             surf, m = _surface(surface.value, s, mesh)
             result = filter_and_fuse(s, dets, surf, rc.filter, cfg, mesh=m)
+            from pavemap.maintain import assess, summary
+
+            mc = rc.maintenance  # the same defect schema as `pavemap run` (issue 16)
+            result.segments = assess(result.instances, s, surf, result.instance_labels,
+                                     getattr(m, "observed", None) if surface.value in ("mesh", "auto") else None,
+                                     policy=mc.policy, segment_m=mc.segment_m, lane_width_m=mc.lane_width_m)
+            result.metrics["maintenance"] = summary(result.instances, result.segments)
             ev = None
             if truth and (seq / "truth" / "defects.geojson").is_file():
                 from pavemap.evaluate import evaluate

@@ -145,7 +145,8 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
                   seq: Sequence | None = None, output: object | None = None,
                   mesh_path: str | os.PathLike | None = None, trajectory: np.ndarray | None = None,
                   title: str | None = None, progress: bool = True,
-                  written: dict[str, Path] | None = None, valid: np.ndarray | None = None) -> dict[str, Path]:
+                  written: dict[str, Path] | None = None, valid: np.ndarray | None = None,
+                  segments: list | None = None) -> dict[str, Path]:
     """Write every output of a run into ``out_dir``; returns {name: path}.
 
     Arrays: ``prob_map`` (H, W) float and ``class_maps`` (4, H, W) float on ``grid`` (a
@@ -164,6 +165,7 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
     ``mesh_path``: stage 1's road_mesh.ply, copied into ``out_dir`` when it lives elsewhere.
     ``trajectory`` (F, 2|3) world metres, drawn on the report map (default: the sequence's).
     ``valid`` (H, W) bool on ``grid``: the surveyed cells (the GeoTIFF's nodata elsewhere; default all).
+    ``segments``: the road segments (``FusionResult.segments``) drawn as the report's segment strip.
     Layers: ``defects.geojson`` only with ``geo_origin`` (GeoJSON is WGS84), ``survey.gpkg`` always
     (:mod:`pavemap.export.gis`; CRS ``output.crs``, extra formats ``output.extra_formats``).
     """
@@ -241,7 +243,8 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
             paths["report.html"] = write_report(
                 out, instances, bev_rgb=bev_rgb, bev_semantic=bev_semantic, mesh_grid=mesh_grid,
                 prob_map=prob_map, grid=grid, geo_origin=geo_origin, metrics=metrics, config=config,
-                detections=detections, figures=figs, files=files, trajectory=trajectory, title=title)
+                detections=detections, figures=figs, files=files, trajectory=trajectory, title=title,
+                segments=segments)
             step("report.html")
     except OSError as e:  # read-only, disk full …: say which file (the atomic writer names the final one)
         where = f": {e.filename}" if e.filename else ""

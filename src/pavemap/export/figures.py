@@ -29,8 +29,10 @@ from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance  # noqa: E4
 
 # the paper's Figure 11 colours: D00 green, D10 yellow, D20 orange, D40 red
 CLASS_COLOURS: dict[str, str] = DEFECT_HEX
-PRIORITY_COLOURS: dict[str, str] = {"repair now": "#c0392b", "inspect": "#e67e22", "no action": "#7f8c8d"}
-PRIORITIES = ("repair now", "inspect", "no action")
+# urgency by the maintenance policy (pavemap.maintain.policy.PRIORITIES), most urgent first
+PRIORITY_COLOURS: dict[str, str] = {"repair now": "#c0392b", "schedule": "#e67e22", "monitor": "#7f8c8d",
+                                    "unassessed": "#bdc3c7"}
+PRIORITIES = ("repair now", "schedule", "monitor")
 # metrics shown first in the statistics panel, when present (paper names, SPEC §4)
 KEY_METRICS = ("filter_rate", "orp", "msr", "coverage", "obs_per_vertex", "severity", "avg_distance_m",
                "precision", "recall", "f1", "loc_error_m", "total_s")

@@ -10,7 +10,9 @@
   frame timestamp in seconds (Unix time when the frames carry absolute times), plus start/end fields;
 - ``survey``: one record with the date, vehicle, cameras, software version, CRS, geo origin and the
   georeferencing residual; its geometry is the surveyed area (:mod:`pavemap.geo.coverage`);
-- ``baseline_defects``: the single-frame baseline (every mapped detection alone; for evaluation).
+- ``baseline_defects``: the single-frame baseline (every mapped detection alone; for evaluation);
+- ``segments``: the road segments of chainage with their PCI-like condition index
+  (:data:`pavemap.maintain.segments.SEGMENT_SCHEMA`), when the run was assessed.
 
 CRS: with a geo origin the drive's UTM zone (or ``--crs``); without one the local engineering CRS
 of :func:`pavemap.geo.crs.local_crs`, so no layer of a run without a geo origin reads as EPSG:4326.
@@ -44,7 +46,7 @@ log = logging.getLogger("pavemap")
 SURVEY_GPKG = "survey.gpkg"
 DEFECTS_FGB = "defects.fgb"
 EXTRA_FORMATS = ("fgb", "kml", "kmz")
-_DTYPES = {"int": np.int64, "float": np.float64, "str": object}
+_DTYPES = {"int": np.int64, "float": np.float64, "str": object, "bool": bool}
 _GPKG_OPTIONS = {"VERSION": "1.3"}  # 1.4 (GDAL >= 3.7's default) draws a warning from GDAL 3.6
 
 
@@ -52,17 +54,24 @@ def _schema(geo: bool) -> list[tuple[str, str]]:
     return [(n, t) for n, t, *_ in PROPERTY_SCHEMA if geo or n not in ("lon", "lat")]
 
 
-def _fields(records: list[dict], schema: list[tuple[str, str]]) -> tuple[list[np.ndarray], list[str]]:
-    data = []
+def _fields(records: list[dict], schema: list[tuple[str, str]]
+            ) -> tuple[list[np.ndarray], list[str], list[np.ndarray | None]]:
+    """Field arrays, names and null masks (bool fields only: true / false / null, e.g. ``measurable``)."""
+    data, masks = [], []
     for name, typ in schema:
         vals = [r.get(name) for r in records]
+        mask = None
         if typ == "float":
             data.append(np.array([np.nan if v is None else float(v) for v in vals], dtype=np.float64))
         elif typ == "int":
             data.append(np.array([-1 if v is None else int(v) for v in vals], dtype=np.int64))
+        elif typ == "bool":
+            data.append(np.array([bool(v) for v in vals], dtype=bool))
+            mask = np.array([v is None for v in vals], dtype=bool)
         else:
             data.append(np.array(["" if v is None else str(v) for v in vals], dtype=object))
-    return data, [n for n, _ in schema]
+        masks.append(mask)
+    return data, [n for n, _ in schema], masks
 
 
 class _Projector:
@@ -158,7 +167,9 @@ def _write_layer(path: Path, driver: str, layer: str, geoms: list, records: dict
         schema = [(k, "str" if isinstance(v, str) else "int" if isinstance(v, bool | int) else "float")
                   for k, v in records.items()]
         records = [{k: (int(v) if isinstance(v, bool) else v) for k, v in records.items()}]
-    data, names = _fields(records, schema or [])
+    data, names, masks = _fields(records, schema or [])
+    if any(m is not None for m in masks):
+        kw["field_mask"] = masks
     pyogrio.raw.write(path, _wkb(geoms) if geometry_type != "Measured 3D LineString" else
                       np.array(geoms, dtype=object), data, names, layer=layer, driver=driver,
                       geometry_type=geometry_type, crs=crs.to_wkt() if crs is not None else None, **kw)
@@ -166,10 +177,12 @@ def _write_layer(path: Path, driver: str, layer: str, geoms: list, records: dict
 
 def write_gis(out_dir: str | os.PathLike, instances: list[DefectInstance], *, baseline: list[DefectInstance] | None
               = None, geo_origin: GeoOrigin | None = None, crs: str = "auto", seq: Sequence | None = None,
-              surveyed: object | None = None, formats: tuple[str, ...] = (), vehicle: str = "") -> dict[str, Path]:
+              surveyed: object | None = None, formats: tuple[str, ...] = (), vehicle: str = "",
+              segments: list | None = None) -> dict[str, Path]:
     """Write ``survey.gpkg`` (and ``defects.fgb``, ``survey.kml``/``.kmz`` for ``formats``); returns {name: path}.
 
     ``surveyed``: the surveyed area, a shapely geometry in world metres (the ``survey`` layer's geometry).
+    ``segments``: road segments (:mod:`pavemap.maintain.segments`), the ``segments`` layer when given.
     """
     unknown = sorted(set(formats) - set(EXTRA_FORMATS))
     if unknown:
@@ -204,6 +217,12 @@ def write_gis(out_dir: str | os.PathLike, instances: list[DefectInstance], *, ba
                      survey_record(seq, geo_origin, target, len(instances), vehicle), target, "MultiPolygon")
         _write_layer(tmp, "GPKG", "baseline_defects", polys(baseline or [], proj), records(baseline or []), target,
                      "MultiPolygon", schema)
+        if segments is not None:
+            from pavemap.maintain.segments import SEGMENT_SCHEMA
+
+            _write_layer(tmp, "GPKG", "segments", [None if (m := _multi(g.polygon)) is None else proj.geometry(m)
+                                                   for g in segments], [g.record() for g in segments], target,
+                         "MultiPolygon", [(n, t) for n, t, *_ in SEGMENT_SCHEMA])
     paths[SURVEY_GPKG] = out / SURVEY_GPKG
     if "fgb" in formats:
         with atomic_path(out / DEFECTS_FGB) as tmp:

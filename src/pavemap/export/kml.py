@@ -56,8 +56,10 @@ def kml_text(instances: list[DefectInstance], geo_origin: GeoOrigin, seq: Sequen
         data = "".join(f'<Data name="{escape(k)}"><value>{escape(str(v))}</value></Data>'
                        for k, v in props.items() if v is not None)
         geom = "".join(_polygon_xml(p, lt) for p in polys)
-        marks.append(f"<Placemark><name>{inst.code} #{inst.id}</name><description>{escape(inst.name)}, "
-                     f"{escape(inst.priority)}</description><styleUrl>#{inst.code}</styleUrl>"
+        level = props.get("severity_level")  # urgency first, then how bad (when assessed)
+        what = f"{escape(inst.priority)}" + (f", {escape(str(level))} severity" if level else "")
+        marks.append(f"<Placemark><name>{inst.code} #{inst.id}</name><description>{escape(inst.name)}: "
+                     f"{what}</description><styleUrl>#{inst.code}</styleUrl>"
                      f"<ExtendedData>{data}</ExtendedData><MultiGeometry>{geom}</MultiGeometry></Placemark>")
     track = ""
     if seq is not None and len(seq.frames) > 1:

@@ -24,7 +24,16 @@ from pavemap import __version__
 from pavemap.export.figures import CLASS_COLOURS, flatten_metrics, format_value, grid_extent, headline_metrics
 from pavemap.export.geojson import _polygons, instance_properties
 from pavemap.export.report_assets import CSS, JS
-from pavemap.export.tables import PRIORITY_RANK
+from pavemap.export.report_worklist import (
+    FIELD_CSS,
+    PRINT_CSS,
+    PRIORITY_FILL,
+    PRIORITY_ORDER,
+    order_records,
+    segment_strip,
+    slug,
+    worklist_table,
+)
 from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_write_text
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance, GeoOrigin
@@ -117,8 +126,8 @@ def _kv_table(rows: list[tuple[str, str]], head: tuple[str, str] | None = None) 
     return f'<table class="kv">{h}{body}</table>'
 
 
-TABLE_COLUMNS = (  # key, header, type ("num" | "str"), decimals
-    ("id", "id", "num", None), ("code", "class", "str", None), ("priority", "priority", "num", None),
+TABLE_COLUMNS = (  # key, header, type ("num" | "str"), decimals; "severity" reads paper_severity when present
+    ("id", "id", "num", None), ("code", "class", "str", None), ("priority", "urgency", "num", None),
     ("severity", "severity", "num", 3), ("severity_max", "sev. max", "num", 3), ("confidence", "conf.", "num", 2),
     ("observations", "obs.", "num", None), ("probability", "prob.", "num", 2), ("area_m2", "area m²", "num", 3),
     ("length_m", "length m", "num", 2), ("x_m", "x m", "num", 2), ("y_m", "y m", "num", 2),
@@ -126,54 +135,39 @@ TABLE_COLUMNS = (  # key, header, type ("num" | "str"), decimals
 
 
 def _table_rows(props: list[dict], geo: bool) -> tuple[str, str]:
-    # lat/lon right after the priority: visible without scrolling the table sideways
-    geo_cols = [("lat", "lat", "num", 7), ("lon", "lon", "num", 7)] if geo else []
-    cols = list(TABLE_COLUMNS[:3]) + geo_cols + list(TABLE_COLUMNS[3:])
+    """Header and rows of the full defects table (every measure; sortable in the page)."""
+    new = any("paper_severity" in p for p in props)  # issue 16 renamed the EMA severity
+    sev, sev_max = ("paper_severity", "paper_severity_max") if new else ("severity", "severity_max")
+    # lat/lon and chainage right after the urgency: visible without scrolling the table sideways
+    extra = [("chainage_m", "chainage m", "num", 1)] if any(p.get("chainage_m") is not None for p in props) else []
+    extra += [("lat", "lat", "num", 7), ("lon", "lon", "num", 7)] if geo else []
+    cols = [({"severity": sev, "severity_max": sev_max}.get(k, k), h, t, nd) for k, h, t, nd in TABLE_COLUMNS]
+    cols = cols[:3] + extra + cols[3:]
     head = "".join(f'<th data-key="{k}" data-type="{t}">{_esc(h)}<span class="arrow"></span></th>'
                    for k, h, t, _ in cols)
-    order = sorted(props, key=lambda p: (PRIORITY_RANK.get(p["priority"], 9), -(p["severity"] or 0), p["id"]))
     rows = []
-    for p in order:
+    for n, p in enumerate(order_records(props)):
         cells = []
         for k, _, _t, nd in cols:
             v = p.get(k)
-            if k == "priority":
-                slug = str(v).replace(" ", "-")
-                cells.append(f'<td data-v="{PRIORITY_RANK.get(v, 9)}"><span class="pill {_esc(slug)}">'
-                             f"{_esc(v)}</span></td>")
+            if k == "priority":  # sorts by the work-list order (priority_rank when assessed)
+                cells.append(f'<td data-v="{n}"><span class="pill {_esc(slug(v))}">{_esc(v)}</span></td>')
             elif k == "code":
                 cells.append(f'<td data-v="{_esc(v)}"><span class="sw" style="background:{CLASS_COLOURS[v]}">'
                              f'</span>{_esc(v)} <span style="color:#5c6677">{_esc(p["name"])}</span></td>')
             else:
-                txt = "–" if v is None else (f"{v:.{nd}f}" if nd is not None else str(v))
-                sv = "NaN" if v is None else v
-                cells.append(f'<td class="num" data-v="{_esc(sv)}">{_esc(txt)}</td>')
+                ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+                txt = "–" if v is None else (f"{v:.{nd}f}" if nd is not None and ok else str(v))
+                cells.append(f'<td class="num" data-v="{_esc(v if ok else "NaN")}">{_esc(txt)}</td>')
         rows.append(f'<tr data-id="{p["id"]}" data-code-of="{_esc(p["code"])}">{"".join(cells)}</tr>')
     return head, "".join(rows)
 
 
-def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | None = None,
-                      bev_semantic: np.ndarray | None = None, mesh_grid: GridSpec | None = None,
-                      prob_map: np.ndarray | None = None, grid: GridSpec | None = None,
-                      geo_origin: GeoOrigin | None = None, metrics: dict | None = None,
-                      config: dict | None = None, detections: list[dict] | None = None,
-                      figures: dict[str, Path] | None = None, files: dict[str, Path] | None = None,
-                      trajectory: np.ndarray | None = None, title: str = "pavemap defect report",
-                      subtitle: str = "") -> str:
-    """The report page as a string (see ``write_report``)."""
-    props = [instance_properties(i, geo_origin) for i in instances]
-    for p, inst in zip(props, instances, strict=True):
-        g = inst.polygon
-        p["bbox"] = [round(float(v), 3) for v in g.bounds] if g is not None and not g.is_empty else None
-    det = _detection_summary(detections)
-
-    # ---- summary cards
-    prio = Counter(p["priority"] for p in props)
+def _research(props: list[dict], det: dict, metrics: dict | None) -> str:
+    """The research metrics (paper statistics, detections, geometry self-check, evaluation), collapsed."""
     area = sum(p["area_m2"] or 0.0 for p in props)
     length = sum(p["length_m"] or 0.0 for p in props)
-    cards = [("", len(props), "defects"), ("repair", prio.get("repair now", 0), "repair now"),
-             ("inspect", prio.get("inspect", 0), "inspect"), ("none", prio.get("no action", 0), "no action"),
-             ("", f"{area:.2f} m²", "total defect area"), ("", f"{length:.1f} m", "total crack length")]
+    cards = [("", f"{area:.2f} m²", "total defect area"), ("", f"{length:.1f} m", "total crack length")]
     if det:
         cards.append(("", f"{det['kept']}/{det['total']}", "detections kept"))
     flat = flatten_metrics(metrics)
@@ -181,31 +175,56 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
         if key in flat:
             cards.append(("", f"{float(flat[key]):.1f} s", "run time"))
             break
-    ids = [' id="defect-count"'] + [""] * (len(cards) - 1)
-    cards_html = "".join(f'<div class="card {c}"><div class="v"{ident}>{_esc(v)}</div><div class="k">{_esc(k)}</div>'
-                         "</div>" for ident, (c, v, k) in zip(ids, cards, strict=True))
-    notice = "" if props else f'<div class="notice" id="no-defects">{_esc(_no_defects_message(det))}</div>'
+    cards_html = "".join(f'<div class="card {c}"><div class="v">{_esc(v)}</div><div class="k">{_esc(k)}</div></div>'
+                         for c, v, k in cards)
     per_class = [(f"{c} {DEFECT_NAMES[c]}", str(sum(p["code"] == c for p in props))) for c in DEFECT_CODES]
-    det_rows = []
+    tables = _kv_table(per_class, ("class", "instances"))
     if det:
         det_rows = [("detections", str(det["total"])), ("kept by the road filter", str(det["kept"])),
                     ("filtered", str(det["filtered"])), ("mapped onto the mesh", str(det["mapped"]))]
-        det_rows += [(f"filtered: {r}", str(n)) for r, n in sorted(det["reasons"].items())]
-    # headline metrics in small tables; everything else folded away in "all metrics"
-    summary_tables = _kv_table(per_class, ("class", "instances"))
-    if det_rows:
-        summary_tables += _kv_table(det_rows, ("detections", "count"))
+        tables += _kv_table(det_rows + [(f"filtered: {r}", str(n)) for r, n in sorted(det["reasons"].items())],
+                            ("detections", "count"))
     heads = headline_metrics(metrics)
     if not heads and flat:
         heads = [("metrics", [(k, format_value(v)) for k, v in list(flat.items())[:12]])]
+    geo = ((metrics or {}).get("mesh") or {}).get("geometry") or (metrics or {}).get("geometry")
+    if isinstance(geo, dict):
+        heads.append(("geometry self-check", [(k, format_value(v)) for k, v in flatten_metrics(geo).items()
+                                              if k != "warnings"][:14]))
     for g, rows_ in heads:
-        summary_tables += _kv_table(rows_, (g, "value"))
+        tables += _kv_table(rows_, (g, "value"))
     all_metrics = ""
     if flat:
         all_metrics = (f'<details class="allm"><summary>all metrics ({len(flat)})</summary><div class="cols">'
                        + _kv_table([(k, format_value(v)) for k, v in flat.items()]) + "</div></details>")
+    return (f'<section id="research-section"><details id="research"><summary>Research metrics (paper statistics, '
+            f'detections, geometry self-check, evaluation)</summary><div class="cards">{cards_html}</div>'
+            f'<div class="kvgrid">{tables}</div>{all_metrics}</details></section>')
 
-    # ---- map
+
+def _worklist(props: list[dict], det: dict, geo: bool) -> str:
+    """The first screen: urgency counts and the work list (or why there is nothing to do)."""
+    prio = Counter(str(p["priority"]) for p in props)
+    labels = ["repair now"] + sorted({k for k in prio if k != "repair now"}, key=lambda k: PRIORITY_ORDER.get(k, 9))
+    if not props:
+        labels += ["schedule", "monitor"]
+    cards = [("", len(props), "defects", ' id="defect-count"')]
+    cards += [(slug(k), prio.get(k, 0), k, "") for k in labels]
+    cards_html = "".join(f'<div class="card {c}"><div class="v"{ident}>{_esc(v)}</div><div class="k">{_esc(k)}</div>'
+                         "</div>" for c, v, k, ident in cards)
+    body = (f'<div class="notice" id="no-defects">{_esc(_no_defects_message(det))}</div>' if not props else
+            f'<div class="tablewrap">{worklist_table(props, geo)}</div>')
+    missing = sum(not p.get("evidence") for p in props)
+    note = (f'<p class="muted">{missing} of {len(props)} defects have no evidence photo (the row says why).</p>'
+            if missing else "")
+    return (f'<section id="worklist"><h2>Work list — {len(props)} defects, most urgent first</h2>'
+            f'<div class="cards small">{cards_html}</div>{body}{note}</section>')
+
+
+def _map(props: list[dict], instances: list[DefectInstance], bev_rgb: np.ndarray | None,
+         bev_semantic: np.ndarray | None, mesh_grid: GridSpec | None, prob_map: np.ndarray | None,
+         grid: GridSpec | None, trajectory: np.ndarray | None, geo_origin: GeoOrigin | None) -> tuple[str, list]:
+    """The map section (SVG layers, defects coloured by urgency, toolbars) and its home view box."""
     layers, extents = [], []
     if bev_rgb is not None and mesh_grid is not None:
         layers.append(_image_el("layer-rgb", _data_uri(np.asarray(bev_rgb)[::-1], "JPEG"), mesh_grid))
@@ -225,21 +244,16 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
     shapes, markers = [], []
     for p, inst in zip(props, instances, strict=True):
         d = _svg_path(inst.polygon)
-        col = CLASS_COLOURS[p["code"]]
-        attrs = f'data-id="{p["id"]}" data-code-of="{p["code"]}" fill="{col}"'
+        attrs = f'data-id="{p["id"]}" data-code-of="{p["code"]}" fill="{PRIORITY_FILL.get(p["priority"], "#999")}"'
         if d:
-            shapes.append(f'<path class="d" d="{d}" fill-rule="evenodd" {attrs}><title>#{p["id"]} {p["code"]}'
-                          f"</title></path>")
+            shapes.append(f'<path class="d" d="{d}" fill-rule="evenodd" {attrs}><title>#{p["id"]} {p["code"]} '
+                          f'{_esc(p["priority"])}</title></path>')
         cx, cy = p["x_m"] or 0.0, p["y_m"] or 0.0
         markers.append(f'<circle class="mk" cx="{cx:.3f}" cy="{-cy:.3f}" r="0.5" {attrs}/>')
-    for p in props:
         if p["bbox"] is not None:
             extents.append([p["bbox"][0], p["bbox"][2], p["bbox"][1], p["bbox"][3]])
-    if extents:
-        e = np.array(extents, dtype=np.float64)
-        xmin, xmax, ymin, ymax = e[:, 0].min(), e[:, 1].max(), e[:, 2].min(), e[:, 3].max()
-    else:
-        xmin, xmax, ymin, ymax = -10.0, 10.0, -10.0, 10.0
+    e = np.array(extents or [[-10.0, 10.0, -10.0, 10.0]], dtype=np.float64)
+    xmin, xmax, ymin, ymax = e[:, 0].min(), e[:, 1].max(), e[:, 2].min(), e[:, 3].max()
     pad = 0.02 * max(xmax - xmin, ymax - ymin, 1.0)
     view = [round(float(v), 3) for v in (xmin - pad, -ymax - pad, xmax - xmin + 2 * pad, ymax - ymin + 2 * pad)]
     svg = (f'<svg id="map" viewBox="{" ".join(map(str, view))}" '
@@ -251,20 +265,55 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
         h = np.radians(float(geo_origin.heading_deg))
         ang = float(np.degrees(np.arctan2(np.cos(h), np.sin(h))))  # screen angle from up, clockwise
         compass = (f'<div id="compass" title="north"><div style="transform:rotate({ang:.1f}deg)">▲<br>N</div></div>')
-    layer_boxes = []
+    boxes = []
     for el_id, label, on in (("layer-rgb", "BEV RGB", bev_rgb is not None),
                              ("layer-sem", "semantics", bev_rgb is None and bev_semantic is not None),
                              ("layer-prob", "probability", False), ("layer-traj", "trajectory", True),
                              ("defect-shapes", "polygons", True), ("defect-markers", "markers", True)):
         if el_id in svg:
-            chk = " checked" if on else ""
-            layer_boxes.append(f'<label><input type="checkbox" data-layer="{el_id}"{chk}> {label}</label>')
-    class_boxes = "".join(
-        f'<label><input type="checkbox" data-code="{c}" checked> <span class="sw" '
-        f'style="background:{CLASS_COLOURS[c]}"></span>{c} {DEFECT_NAMES[c]}</label>' for c in DEFECT_CODES)
-    head, rows = _table_rows(props, geo_origin is not None)
+            boxes.append(f'<label><input type="checkbox" data-layer="{el_id}"{" checked" if on else ""}> {label}'
+                         "</label>")
+    classes = "".join(f'<label><input type="checkbox" data-code="{c}" checked> <span class="sw" style="background:'
+                      f'{CLASS_COLOURS[c]}"></span>{c} {DEFECT_NAMES[c]}</label>' for c in DEFECT_CODES)
+    shown = sorted({str(p["priority"]) for p in props} | {"repair now"}, key=lambda k: PRIORITY_ORDER.get(k, 9))
+    legend = "".join(f'<span class="plegend"><span class="sw" style="background:{PRIORITY_FILL.get(k, "#999")}">'
+                     f"</span>{_esc(k)}</span>" for k in shown)
+    return (f'<section id="map-section"><h2>Defect map (coloured by urgency)</h2><div class="toolbar">'
+            '<button id="zoom-in" title="zoom in">+</button><button id="zoom-out" title="zoom out">−</button>'
+            f'<button id="zoom-home" title="fit the whole map">fit</button>{"".join(boxes)}</div>'
+            f'<div class="toolbar">{legend} · show classes: {classes}</div>'
+            f'<div id="map-wrap">{svg}<div id="tooltip" hidden></div><div id="scalebar"></div>{compass}'
+            '<div id="maphelp">wheel: zoom · drag: pan · click: select</div></div><div id="selected"></div>'
+            "</section>"), view
 
-    # ---- figures, settings, files
+
+def _files_html(files: dict[str, Path] | None) -> str:
+    """The run's files as links; the evidence photos as one line (they are linked from the work list)."""
+    items = {k: p for k, p in (files or {}).items() if not str(k).startswith("evidence/")}
+    n_ev = sum(str(k).startswith("evidence/") for k in (files or {}))
+    lis = "".join(f'<li><a href="{_esc(Path(p).name)}">{_esc(Path(p).name)}</a> — {_esc(k)}</li>'
+                  for k, p in items.items())
+    if n_ev:
+        lis += f'<li><a href="evidence/">evidence/</a> — {n_ev} evidence photos (best view of each defect)</li>'
+    return f"<ul>{lis}</ul>" if lis else ""
+
+
+def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | None = None,
+                      bev_semantic: np.ndarray | None = None, mesh_grid: GridSpec | None = None,
+                      prob_map: np.ndarray | None = None, grid: GridSpec | None = None,
+                      geo_origin: GeoOrigin | None = None, metrics: dict | None = None,
+                      config: dict | None = None, detections: list[dict] | None = None,
+                      figures: dict[str, Path] | None = None, files: dict[str, Path] | None = None,
+                      trajectory: np.ndarray | None = None, title: str = "pavemap defect report",
+                      subtitle: str = "", segments: list | None = None) -> str:
+    """The report page as a string (see ``write_report``)."""
+    props = [instance_properties(i, geo_origin) for i in instances]
+    for p, inst in zip(props, instances, strict=True):
+        g = inst.polygon
+        p["bbox"] = [round(float(v), 3) for v in g.bounds] if g is not None and not g.is_empty else None
+    det = _detection_summary(detections)
+    map_html, view = _map(props, instances, bev_rgb, bev_semantic, mesh_grid, prob_map, grid, trajectory, geo_origin)
+    head, rows = _table_rows(props, geo_origin is not None)
     figs = "".join(f'<figure><img alt="{_esc(name)}" src="{_file_uri(path)}"><figcaption>{_esc(name)}'
                    "</figcaption></figure>" for name, path in (figures or {}).items() if Path(path).is_file())
     cfg_flat = flatten_metrics(config)
@@ -277,10 +326,7 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
     if fit.get("rms_m") is not None:
         geo_txt += (f", fitted to GPS {Path(str(fit.get('source', ''))).name}: residual RMS {fit['rms_m']:.2f} m over "
                     f"{fit.get('inliers')} of {fit.get('fixes')} fixes")
-    file_list = "".join(f'<li><a href="{_esc(Path(p).name)}">{_esc(Path(p).name)}</a> — {_esc(k)}</li>'
-                        for k, p in (files or {}).items())
-    files_html = f"<ul>{file_list}</ul>" if file_list else ""
-
+    files_html = _files_html(files)
     data = {"defects": props, "view": view, "geo": geo_origin is not None}
     data_json = json.dumps(data, allow_nan=False, separators=(",", ":")).replace("</", "<\\/")
     now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
@@ -290,31 +336,24 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <link rel="icon" href="data:,">
 <title>{_esc(title)}</title>
-<style>{CSS}</style></head>
+<style>{CSS}{FIELD_CSS}{PRINT_CSS}</style></head>
 <body>
 <header><h1>{_esc(title)}</h1><div class="sub">{_esc(sub)}</div></header>
 <main>
-{_geometry_banner(metrics)}<section id="summary"><h2>Summary</h2><div class="cards">{cards_html}</div>{notice}
-<div class="kvgrid">{summary_tables}</div>{all_metrics}</section>
-<div class="split">
-<section id="map-section"><h2>Defect map</h2>
-<div class="toolbar"><button id="zoom-in" title="zoom in">+</button><button id="zoom-out" title="zoom out">−</button>
-<button id="zoom-home" title="fit the whole map">fit</button>{"".join(layer_boxes)}</div>
-<div class="toolbar">{class_boxes}</div>
-<div id="map-wrap">{svg}<div id="tooltip" hidden></div><div id="scalebar"></div>{compass}
-<div id="maphelp">wheel: zoom · drag: pan · click: select</div></div>
-<div id="selected"></div></section>
-<section id="defects-section"><h2>Defects (<span id="shown-count">{len(props)}</span> shown of
-{len(props)}; sorted by priority — click a header to sort)</h2>
+{_geometry_banner(metrics)}<div class="first">{_worklist(props, det, geo_origin is not None)}
+<div class="side">{map_html}{segment_strip(segments)}</div></div>
+<section id="defects-section"><h2>All measures (<span id="shown-count">{len(props)}</span> shown of
+{len(props)}; most urgent first — click a header to sort)</h2>
 {'<p>No defects to list.</p>' if not props else ''}
 <div class="tablewrap"><table id="defects"><thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table></div>
-</section></div>
+</section>
+{_research(props, det, metrics)}
 {f'<section id="figures"><h2>Figures</h2><div class="figs">{figs}</div></section>' if figs else ''}
 <section id="settings"><h2>Run settings</h2><p>Coordinates: {_esc(geo_txt)}.</p>{settings}
 <details><summary>resolved configuration (JSON)</summary><pre>{cfg_json}</pre></details>
 {f'<h2 style="margin-top:12px">Files</h2>{files_html}' if files_html else ''}</section>
 </main>
-<footer>pavemap {_esc(__version__)} · generated {_esc(now)} · self-contained, works offline</footer>
+<footer>pavemap {_esc(__version__)} · generated {_esc(now)} · self-contained except the evidence/ photos</footer>
 <script id="pavemap-data" type="application/json">{data_json}</script>
 <script>{JS}</script>
 </body></html>
@@ -340,7 +379,8 @@ def write_report(out_dir: str | os.PathLike, instances: list[DefectInstance], **
 
     Keyword arguments as ``build_report_html``: bev_rgb (ny, nx, 3) uint8 and bev_semantic on mesh_grid,
     prob_map (H, W) on grid, geo_origin, metrics, config, detections (records with kept/reason/mapped),
-    figures {caption: png path}, files {description: path}, trajectory (F, 2|3), title, subtitle.
+    figures {caption: png path}, files {description: path}, trajectory (F, 2|3), title, subtitle,
+    segments (road segments with chainage start/end and a condition index, drawn as the segment strip).
     """
     path = Path(out_dir) / "report.html"
     return atomic_write_text(path, build_report_html(instances, **kwargs))

@@ -109,10 +109,16 @@ JS = r"""
     return String(v);
   }
   function describe(d) {
-    var rows = [["priority", d.priority], ["severity", fmt(d.severity, 3) + " (max " + fmt(d.severity_max, 3) + ")"],
+    var sev = d.paper_severity !== undefined ? d.paper_severity : d.severity;
+    var sevMax = d.paper_severity_max !== undefined ? d.paper_severity_max : d.severity_max;
+    var rows = [["urgency", d.priority + (d.priority_rank ? " (rank " + d.priority_rank + ")" : "")]];
+    if (d.severity_level) rows.push(["severity level", d.severity_level]);
+    if (d.chainage_m !== undefined && d.chainage_m !== null) rows.push(["chainage", fmt(d.chainage_m, 1) + " m"]);
+    if (d.depth_max_mm !== undefined && d.depth_max_mm !== null) rows.push(["depth", fmt(d.depth_max_mm, 0) + " mm"]);
+    rows = rows.concat([["EMA severity", fmt(sev, 3) + " (max " + fmt(sevMax, 3) + ")"],
       ["confidence", fmt(d.confidence, 2)], ["observations", fmt(d.observations)],
       ["probability", fmt(d.probability, 2)], ["area", fmt(d.area_m2, 3) + " m²"],
-      ["length", fmt(d.length_m, 2) + " m"], ["position", "x " + fmt(d.x_m, 2) + ", y " + fmt(d.y_m, 2) + " m"]];
+      ["length", fmt(d.length_m, 2) + " m"], ["position", "x " + fmt(d.x_m, 2) + ", y " + fmt(d.y_m, 2) + " m"]]);
     if (d.lat !== undefined && d.lat !== null) rows.push(["lat, lon", fmt(d.lat, 7) + ", " + fmt(d.lon, 7)]);
     return rows;
   }
@@ -302,7 +308,10 @@ JS = r"""
       var type = ths[col].getAttribute("data-type");
       var rows = Array.prototype.slice.call(tbody.rows);
       var sevCol = -1;
-      for (var k = 0; k < ths.length; k++) if (ths[k].getAttribute("data-key") === "severity") sevCol = k;
+      for (var k = 0; k < ths.length; k++) {
+        var dk = ths[k].getAttribute("data-key");
+        if (dk === "severity" || dk === "paper_severity") sevCol = k;
+      }
       function val(tr, c) {
         var v = tr.cells[c].getAttribute("data-v");
         return (type === "str" && c === col) ? v : parseFloat(v);
@@ -332,6 +341,12 @@ JS = r"""
     })(c);
     for (var c2 = 0; c2 < ths.length; c2++) if (ths[c2].getAttribute("data-key") === "priority") sortBy(c2, 1);
   }
+  var worklist = document.getElementById("worklist-table");
+  if (worklist) worklist.addEventListener("click", function (e) {
+    if (e.target.closest("a")) return;  // the photo link opens the full crop
+    var tr = e.target.closest("tbody tr");
+    if (tr && tr.getAttribute("data-id") !== null) select(tr.getAttribute("data-id"), "table");
+  });
   var classBoxes = document.querySelectorAll("input[data-code]");
   function applyFilters() {
     var on = {};
@@ -341,7 +356,7 @@ JS = r"""
     for (var j = 0; j < els.length; j++) {
       var vis = on[els[j].getAttribute("data-code-of")] !== false;
       els[j].classList.toggle("hidden", !vis);
-      if (vis && els[j].tagName === "TR") shown++;
+      if (vis && els[j].tagName === "TR" && els[j].closest("#defects")) shown++;
     }
     var sc = document.getElementById("shown-count");
     if (sc) sc.textContent = String(shown);

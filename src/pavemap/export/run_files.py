@@ -36,6 +36,8 @@ DETECTIONS_MAPPED = "detections_mapped.jsonl"
 MAP_GRID = "defect_map.json"
 METRICS = "metrics.json"
 EVAL = "eval.json"
+SEGMENTS_CSV = "segments.csv"  # road segments with their PCI-like index (pavemap.maintain.segments)
+SEGMENTS_GEOJSON = "segments.geojson"
 
 
 def write_npy(path: str | os.PathLike, a: np.ndarray) -> Path:
@@ -63,20 +65,26 @@ def write_fusion_files(out_dir: str | os.PathLike, result: FusionResult,
     """Stage 3's files: the defect layers, the maps (.npy + their grid), the detection records.
 
     Layers: ``survey.gpkg`` always, defects + baseline GeoJSON with a geo origin (module docstring);
+    the road segments (``result.segments``) as ``segments.csv`` always, ``segments.geojson`` with a geo origin;
     ``output`` (OutputConfig or dict) gives ``crs``, ``extra_formats`` and ``vehicle``.
     ``defect_map.npy`` (H, W) float32 and ``defect_map_<code>.npy`` on the grid in ``defect_map.json``
     (``GridSpec.to_dict``, plus the vertex grid of ``vertex_prob.npy`` under ``surface``).
     """
     from pavemap.export.gis import write_gis
+    from pavemap.maintain.segments import write_segments_csv, write_segments_geojson
 
     out = Path(out_dir)
     paths: dict[str, Path] = {}
+    segments = list(getattr(result, "segments", None) or [])
     if geo_origin is not None:
         paths[DEFECTS] = write_geojson(out / DEFECTS, result.instances, geo_origin)
         paths[BASELINE] = write_geojson(out / BASELINE, result.baseline, geo_origin)
+        paths[SEGMENTS_GEOJSON] = write_segments_geojson(out / SEGMENTS_GEOJSON, segments, geo_origin)
+    paths[SEGMENTS_CSV] = write_segments_csv(out / SEGMENTS_CSV, segments)  # always, like survey.gpkg
     paths.update(write_gis(out, result.instances, baseline=result.baseline, geo_origin=geo_origin,
                            crs=_opt(output, "crs", "auto"), seq=seq, surveyed=surveyed,
-                           formats=tuple(_opt(output, "extra_formats", ())), vehicle=_opt(output, "vehicle", "")))
+                           formats=tuple(_opt(output, "extra_formats", ())), vehicle=_opt(output, "vehicle", ""),
+                           segments=segments))
     paths["defect_map.npy"] = write_npy(out / "defect_map.npy", result.prob_map.astype(np.float32))
     for k, code in enumerate(DEFECT_CODES):
         name = f"defect_map_{code}.npy"
@@ -106,12 +114,16 @@ def write_fusion_outputs(out_dir: str | os.PathLike, result: FusionResult, geo_o
                          surface: object | None = None, output: object | None = None) -> dict[str, Path]:
     """The folder of ``pavemap fuse``: stage 3's files, the map GeoTIFF and CSV, ``eval.json`` (with an
     evaluation), ``metrics.json`` last. ``seq`` and ``surface`` give the trajectory and surveyed area."""
+    from pavemap.export.evidence import write_evidence
     from pavemap.export.geotiff import write_geotiff
     from pavemap.export.tables import write_csv
 
     out = Path(out_dir)
     valid, area = surveyed_area(seq, result, surface)
+    # evidence first: the layers and the CSV carry each defect's photo path (or why there is none)
+    evidence = write_evidence(out, result.instances, result.detections, seq)  # type: ignore[arg-type]
     paths = write_fusion_files(out, result, geo_origin, seq=seq, surveyed=area, output=output)
+    paths.update(evidence)
     paths["defects.csv"] = write_csv(out / "defects.csv", result.instances, geo_origin)
     paths["defect_map.tif"] = write_geotiff(out / "defect_map.tif", result.prob_map, result.class_maps, result.grid,
                                             geo_origin, crs=_opt(output, "crs", "auto"), valid=valid,
@@ -134,11 +146,15 @@ def write_run(out_dir: str | os.PathLike, result: FusionResult, metrics: dict, *
     ``metrics.json`` is written, last. ``surface`` (the road HeightField) places the surveyed area.
     """
     from pavemap.export import write_outputs
+    from pavemap.export.evidence import write_evidence
 
     t = time.perf_counter()
     out = Path(out_dir)
     valid, area = surveyed_area(seq, result, surface)
+    # evidence first: the layers, the CSV and the report carry each defect's photo (or why there is none)
+    evidence = write_evidence(out, result.instances, result.detections, seq)  # type: ignore[arg-type]
     paths = write_fusion_files(out, result, geo_origin, seq=seq, surveyed=area, output=output)
+    paths.update(evidence)
     if evaluation is not None:
         paths[EVAL] = write_eval(out, evaluation)
     written = {**paths, METRICS: out / METRICS}  # listed in the report; metrics.json follows it
@@ -146,7 +162,7 @@ def write_run(out_dir: str | os.PathLike, result: FusionResult, metrics: dict, *
         out, instances=result.instances, prob_map=result.prob_map, class_maps=result.class_maps, grid=result.grid,
         bev_rgb=bev_rgb, bev_semantic=bev_semantic, mesh_grid=mesh_grid, geo_origin=geo_origin, metrics=metrics,
         config=config, detections=result.detections, seq=seq, output=output, mesh_path=mesh_path,
-        progress=progress, written=written, valid=valid,
+        progress=progress, written=written, valid=valid, segments=getattr(result, "segments", None),
     ))
     seconds = metrics.setdefault("seconds", {})
     seconds["export"] = round(time.perf_counter() - t, 3)

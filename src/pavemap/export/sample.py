@@ -13,13 +13,11 @@ from shapely import affinity
 from shapely.geometry import Point, Polygon, box
 
 from pavemap.geometry.grid import GridSpec
+from pavemap.maintain import UNASSESSED, assess_instances
+from pavemap.maintain.chainage import route_polyline
 from pavemap.types import DEFECT_CODES, DefectInstance, GeoOrigin
 
 W_SEV = (0.3, 0.4, 0.7, 1.0)
-
-
-def _priority(p: float) -> str:
-    return "repair now" if p >= 0.7 else ("inspect" if p >= 0.4 else "no action")
 
 
 def defect_shape(cls: int, cx: float, cy: float, rng: np.random.Generator, scale: float = 1.0) -> Polygon:
@@ -113,7 +111,7 @@ def sample_inputs(n: int = 12, seed: int = 0, geo: bool = False, heading_deg: fl
         instances.append(DefectInstance(
             id=i + 1, cls=cls, polygon=poly, severity_mean=sev_mean, severity_max=min(1.0, sev_mean * 1.4),
             confidence=float(rng.uniform(0.3, 0.9)), observations=obs, probability=p, area_m2=float(poly.area),
-            length_m=float(length), centroid=(poly.centroid.x, poly.centroid.y), priority=_priority(p)))
+            length_m=float(length), centroid=(poly.centroid.x, poly.centroid.y), priority=UNASSESSED))
         # darken the road where the defect is and splat its probability
         inside = (X - cx) ** 2 + (Y - cy) ** 2 < (length / 2 + 0.2) ** 2
         blob = np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * (0.3 + length / 4) ** 2)).astype(np.float32) * p
@@ -158,6 +156,7 @@ def sample_inputs(n: int = 12, seed: int = 0, geo: bool = False, heading_deg: fl
         traj = np.vstack([a, b, c])
     else:
         traj = np.column_stack([np.linspace(0, length_m - 8, 20), np.full(20, -1.8)])
+    assess_instances(instances, route_polyline(traj))  # severity level, certainty, urgency as a run has them
     return {"instances": instances, "prob_map": prob, "class_maps": per_class, "grid": grid, "bev_rgb": bev_rgb,
             "bev_semantic": bev_sem, "mesh_grid": grid, "geo_origin": origin, "metrics": metrics,
             "config": config, "detections": detections, "trajectory": traj}

@@ -23,9 +23,10 @@ from pavemap.device import resolve_device
 from pavemap.fuse.accumulate import Accumulators, accumulate, probability
 from pavemap.fuse.associate import associate_detections
 from pavemap.fuse.config import FusionConfig
-from pavemap.fuse.instances import build_instances, priority
+from pavemap.fuse.instances import build_instances
 from pavemap.fuse.maps import bev_grid, splat
 from pavemap.geometry.grid import GridSpec
+from pavemap.maintain.policy import UNASSESSED
 from pavemap.types import DEFECT_CODES, NUM_DEFECT_CLASSES, DefectInstance, Detection, Sequence
 
 # Filter outcomes that are not "unusable input" (every other reason counts as invalid).
@@ -64,6 +65,8 @@ class FusionResult:
     baseline: list[DefectInstance] = field(default_factory=list)
     vertex_counts: np.ndarray | None = None  # (ny, nx, 4) int32 per-class observations
     vertex_severity: np.ndarray | None = None  # (ny, nx) float64 EMA severity
+    instance_labels: np.ndarray | None = None  # (ny, nx) int32 on surface_grid: instance id, 0 = none
+    segments: list = field(default_factory=list)  # pavemap.maintain road segments, once assessed
 
 
 def surface_grid(surface) -> GridSpec:  # noqa: ANN001
@@ -149,7 +152,7 @@ def fuse(seq: Sequence, filtered: Filtered, surface, config: FusionConfig,  # no
         instances=instances, grid=grid, prob_map=maps[0], class_maps=maps[1:],
         vertex_prob=p_dense.reshape(ny, nx), detections=records, metrics=metrics, surface_grid=grid_v,
         baseline=baseline, vertex_counts=counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
-        vertex_severity=sev.reshape(ny, nx),
+        vertex_severity=sev.reshape(ny, nx), instance_labels=labels.astype(np.int32),
     )
 
 
@@ -294,7 +297,7 @@ def baseline_instances(kept: list[Detection], pair_det: np.ndarray, pair_vid: np
             id=t + 1, cls=int(d.cls), polygon=polys[t], severity_mean=sev, severity_max=sev,
             confidence=float(d.conf), observations=1, probability=float(d.conf),
             area_m2=float(area[t]), length_m=float(max(hi_x[t] - lo_x[t], hi_y[t] - lo_y[t]) + res),
-            centroid=(float(cx[t]), float(cy[t])), priority=priority(float(d.conf)),
+            centroid=(float(cx[t]), float(cy[t])), priority=UNASSESSED,
             extra={"detection": k, "vertices": int(cnt[t])},
         ))
     return out

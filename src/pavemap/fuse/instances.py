@@ -15,17 +15,8 @@ from scipy import ndimage
 from shapely.geometry import MultiPolygon, Polygon, shape
 from shapely.ops import unary_union
 
+from pavemap.maintain.policy import UNASSESSED
 from pavemap.types import NUM_DEFECT_CLASSES, DefectInstance
-
-PRIORITY_BANDS = ((0.7, "repair now"), (0.4, "inspect"), (0.0, "no action"))
-
-
-def priority(p: float) -> str:
-    """SPEC §3 bands: 0.7-1.0 repair now, 0.4-0.7 inspect, below 0.4 no action."""
-    for lo, name in PRIORITY_BANDS:
-        if p >= lo:
-            return name
-    return "no action"
 
 
 def label_components(mask: np.ndarray, gap_cells: int = 0) -> tuple[np.ndarray, int]:
@@ -151,7 +142,7 @@ def build_instances(
             severity_mean=float(sev_mean[t]), severity_max=float(sev_max[t + 1]),
             confidence=float(conf_max[t + 1]), observations=int(n_obs[t]), probability=float(prob_max[t + 1]),
             area_m2=float(cnt[t] * res * res), length_m=float(length[t]),
-            centroid=(float(cx[t]), float(cy[t])), priority=priority(float(prob_max[t + 1])),
+            centroid=(float(cx[t]), float(cy[t])), priority=UNASSESSED,  # urgency: pavemap.maintain.assess
             extra={"vertices": int(cnt[t]), "vertex_observations": int(cls_counts[t].sum()),
                    "class_votes": [int(v) for v in cls_counts[t]]},
         ))

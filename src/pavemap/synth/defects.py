@@ -62,7 +62,9 @@ def _crack_polyline(w: World, rng: np.random.Generator, s0: float, t0: float, le
 def make_defects(w: World, rng: np.random.Generator) -> list[dict]:
     p = w.params
     s_lo, s_hi = 3.0, p.road_length - 3.0
-    n = int(rng.poisson(p.defect_density * (s_hi - s_lo) / 100.0))
+    if p.defect_free_until_m is not None:  # a clean stretch first (s = road_before at the first frame)
+        s_lo = max(s_lo, p.road_before + float(p.defect_free_until_m))
+    n = int(rng.poisson(p.defect_density * max(s_hi - s_lo, 0.0) / 100.0))
     mix = np.asarray(p.class_mix, float)
     mix = mix / mix.sum()
     placed: list[tuple[float, float, float, float]] = []  # (s0, s1, t0, t1) boxes, to avoid overlaps
@@ -101,7 +103,7 @@ def _later_survey(w: World, out: list[dict], placed: list, s_lo: float, s_hi: fl
             d["aabb"] = [*(line.min(0) - d["band_m"]), *(line.max(0) + d["band_m"])]
     mix = np.asarray(p.class_mix, float)
     mix = mix / mix.sum()
-    n_new = int(rng.poisson(p.survey_new_per_100m * (s_hi - s_lo) / 100.0))
+    n_new = int(rng.poisson(p.survey_new_per_100m * max(s_hi - s_lo, 0.0) / 100.0))
     for _ in range(n_new):
         before = len(out)
         _place_defect(w, rng, int(rng.choice(4, p=mix)), placed, out, s_lo, s_hi)

@@ -1,7 +1,8 @@
 """Write a synthetic world as a sequence folder (SPEC §6) with its ground truth.
 
 Layout written (on top of SPEC §6):
-  truth/defects.geojson      ground-truth defect polygons (world metres) with id, cls, name, sizes
+  truth/defects.geojson      ground-truth defect polygons (world metres) with id, cls, name, sizes;
+                             potholes also depth_m (nominal), depth_max_m, depth_mean_m, volume_l
   truth/height.npy/.json     the exact surface raster (0.05 m; sample (j, i) at x0 + i*res, y0 + j*res)
   truth/world.json           parameters and seed (same params + seed → byte-identical folder)
   truth/instances/<camera>/<frame>.png   uint16 code map per view (see world.json instance_encoding)
@@ -27,11 +28,11 @@ from pavemap.io.atomic import atomic_write_json
 from pavemap.io.owned import check_replaceable, mark_written
 from pavemap.io.sequence import read_sequence, save_depth, write_sequence
 from pavemap.io.truth import read_truth_grid, write_truth_height
-from pavemap.synth.defects import blob_polygon
+from pavemap.synth.defects import blob_polygon, blob_q_np
 from pavemap.synth.params import CLASSES, torch_threads
 from pavemap.synth.render import render_view
 from pavemap.synth.rig import DEFAULT_SCALE, RIGS, camera_pose, rig_cameras, vehicle_poses
-from pavemap.synth.world import World, make_world
+from pavemap.synth.world import World, make_world, pothole_dent, pothole_window
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, Frame, GeoOrigin, SemanticClass, Sequence, View
 
 DEPTH_MODES = ("none", "sparse", "dense")
@@ -212,6 +213,7 @@ def _write_truth(world: World, root: Path) -> None:
             props["band_m"] = d["band_m"]
         if d["cls"] == 3:
             props["depth_m"] = round(float(d["depth_m"]), 4)
+            props.update(pothole_truth(world, d))
         if d.get("grown"):
             props["grown_in_survey"] = int(world.params.survey)
         if d.get("new_in_survey"):
@@ -225,6 +227,25 @@ def _write_truth(world: World, root: Path) -> None:
     write_truth_height(root, world.height, world.height_grid, extra={
         "sample_at": "height[j, i] is the surface at (x0 + i*res, y0 + j*res)", "interpolation": "bilinear"})
     atomic_write_json(truth / "world.json", world.to_json())
+
+
+def pothole_truth(world: World, d: dict) -> dict:
+    """Depth and volume of a pothole as carved into the exact surface (the 0.05 m height raster).
+
+    Integrates :func:`pavemap.synth.world.pothole_dent` on the raster's own samples, so the volume is
+    the integral of ``truth/height.npy``'s dent: ``depth_max_m`` the deepest sample (rough bottom
+    included, so up to 6 mm beyond the nominal ``depth_m``), ``depth_mean_m`` the mean over the
+    samples inside the outline, ``volume_l`` litres (sample dent x cell area).
+    """
+    g = world.height_grid
+    rows, cols = pothole_window(d, g)
+    X, Y = np.meshgrid(g.xs()[cols], g.ys()[rows])
+    dent = pothole_dent(d, X, Y).astype(np.float32).astype(np.float64)  # as carved (float32 raster)
+    inside = blob_q_np(d, X, Y) < 1
+    if not inside.any():
+        return {"depth_max_m": 0.0, "depth_mean_m": 0.0, "volume_l": 0.0}
+    return {"depth_max_m": round(float(dent.max()), 5), "depth_mean_m": round(float(dent[inside].mean()), 5),
+            "volume_l": round(float(dent.sum() * g.res * g.res * 1000.0), 4)}
 
 
 def load_truth_defects(seq_root: str | os.PathLike) -> list[TruthDefect]:
@@ -275,5 +296,6 @@ __all__ = [
     "load_truth_defects",
     "load_truth_height",
     "load_world",
+    "pothole_truth",
     "synthesize",
 ]

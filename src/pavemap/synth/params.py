@@ -92,6 +92,9 @@ class WorldParams:
     defect_density: float = 25.0  # per 100 m of road
     class_mix: tuple[float, float, float, float] = (0.35, 0.25, 0.2, 0.2)  # D00, D10, D20, D40
     defect_size: float = 1.0  # scale on all defect sizes
+    # no defects before this chainage (m along the drive from the first frame; None: defects everywhere),
+    # e.g. half the drive length for a clean first half and a damaged second half (segment benchmark)
+    defect_free_until_m: float | None = None
     # repeat surveys of the same road: survey k > 0 keeps every defect of survey 0, enlarges a
     # share of them and adds new ones (for testing change detection between surveys)
     survey: int = 0
@@ -122,6 +125,8 @@ class WorldParams:
             raise PavemapError(f"class_mix needs 4 non-negative weights, got {self.class_mix}")
         if not 0 <= self.ego_lane < self.lanes:
             raise PavemapError(f"ego_lane must be 0..{self.lanes - 1}")
+        if self.defect_free_until_m is not None and not np.isfinite(self.defect_free_until_m):
+            raise PavemapError(f"defect_free_until_m must be a finite number or None, got {self.defect_free_until_m}")
 
     @property
     def width(self) -> float:

@@ -284,14 +284,29 @@ def _height_raster(w: World) -> np.ndarray:
     for d in w.defects:
         if d["cls"] != 3:
             continue
-        i0 = max(0, int((d["aabb"][0] - g.x0) / g.res))
-        i1 = min(g.nx, int((d["aabb"][2] - g.x0) / g.res) + 2)
-        j0 = max(0, int((d["aabb"][1] - g.y0) / g.res))
-        j1 = min(g.ny, int((d["aabb"][3] - g.y0) / g.res) + 2)
-        X, Y = np.meshgrid(g.xs()[i0:i1], g.ys()[j0:j1])
-        q = blob_q_np(d, X, Y)
-        # flat-ish bottom with walls over the outer 30 % of the radius, plus a rough bottom
-        depth = d["depth_m"] * np.clip((1 - q) / 0.3, 0, 1) ** 1.5
-        rough = 0.006 * np.sin(X * 37.0 + d["phase"][0]) * np.sin(Y * 41.0 + d["phase"][1])
-        out[j0:j1, i0:i1] -= (depth + np.where(q < 1, rough, 0.0)).astype(np.float32)
+        rows, cols = pothole_window(d, g)
+        X, Y = np.meshgrid(g.xs()[cols], g.ys()[rows])
+        out[rows, cols] -= pothole_dent(d, X, Y).astype(np.float32)
     return out
+
+
+def pothole_window(d: dict, g: GridSpec) -> tuple[slice, slice]:
+    """(rows, cols) slices of grid ``g`` covering a pothole's bounding box (where it is carved)."""
+    i0 = max(0, int((d["aabb"][0] - g.x0) / g.res))
+    i1 = min(g.nx, int((d["aabb"][2] - g.x0) / g.res) + 2)
+    j0 = max(0, int((d["aabb"][1] - g.y0) / g.res))
+    j1 = min(g.ny, int((d["aabb"][3] - g.y0) / g.res) + 2)
+    return slice(j0, j1), slice(i0, i1)
+
+
+def pothole_dent(d: dict, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Depth (m, + down) a pothole carves at world points X, Y (same shape, float64; 0 outside it).
+
+    The one definition of the dent: the height raster subtracts it and the truth's depth / volume
+    integrate it. A flat-ish bottom with walls over the outer 30 % of the radius, plus a rough bottom
+    (+-6 mm) inside the outline; the roughness can make the dent slightly negative near the rim.
+    """
+    q = blob_q_np(d, X, Y)
+    depth = d["depth_m"] * np.clip((1 - q) / 0.3, 0, 1) ** 1.5
+    rough = 0.006 * np.sin(X * 37.0 + d["phase"][0]) * np.sin(Y * 41.0 + d["phase"][1])
+    return depth + np.where(q < 1, rough, 0.0)

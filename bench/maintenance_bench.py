@@ -1,0 +1,297 @@
+"""Maintenance benchmark (issue 16): surface measures of mapped defects against the synthetic truth.
+
+Per preset (kitti-like, nuscenes-like; a shorter drive than the presets' defaults, more defects per
+100 m, so each run fits a few minutes of the shared 2-core CPU) and depth mode (``none``: monocular,
+pavemap's default, rows first; ``sparse``: LiDAR-like sparse depth), the drive is synthesized once with
+sparse depth (the no-depth copy is its sequence.json without the depth layer), ``pavemap.run`` maps it,
+fusion is redone in memory for the instance label image, and :func:`pavemap.maintain.measure.measure_instances`
+measures every instance on the reconstructed mesh. Mapped defects are matched to the truth with
+:func:`pavemap.evaluate.match` (centroids within 0.5 m or polygons overlapping, one to one); measures are
+compared on matched pairs of the same class:
+
+- pothole depth error (mm, max depth below the ring plane vs the carved truth ``depth_max_m``),
+  median and p90 of |error|, mean depth and volume errors, how many were not measurable (and why);
+- area error (%, |mapped area_m2 - truth area| / truth) of potholes and alligator cracking;
+- crack length error (%, skeleton ``crack_length_m`` vs the truth polyline ``length_m``; the principal
+  extent ``length_m`` alongside for comparison) and the share with ``orientation_ok``;
+- severity level agreement (:func:`pavemap.maintain.policy.severity_level` of mapped and truth measures);
+- the same pothole measures on the *true* surface sampled at the mesh grid (``truth_surface``): the
+  error of the measuring method alone, so a miss can be told apart from the mesh's smoothing;
+- the same measures after fusing the same detections on the same mesh with ``fusion.association:
+  footprint`` (``footprint_association``): the default ``hit`` association puts each detection on a
+  0.3 m disk around its box centre's surface point, so a 4 m crack's instance is ~1 m long.
+
+A rerun resumes each run (the mesh is reused), so its ``run`` seconds are short; ``seconds.previous``
+keeps the seconds of the results file it replaces.
+
+Writes ``bench/results/maintenance.json`` (commit, uptime, seconds per run).
+
+    python bench/maintenance_bench.py [--presets kitti-like nuscenes-like] [--depth none sparse] [--device cpu]
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(Path(__file__).parent))
+
+from common import machine_entry, write_results  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results" / "maintenance.json"
+CONFIG_OF = {"nuscenes-like": "nuscenes", "kitti-like": "kitti"}
+# Shorter drives with more defects (potholes over-weighted so the depth statistics have samples).
+DRIVES = {"kitti-like": {"frames": 40, "scale": 0.5, "road_after": 30.0},
+          "nuscenes-like": {"frames": 14, "scale": 0.3, "road_after": 30.0}}
+WORLD = {"defect_density": 40.0, "class_mix": (0.3, 0.2, 0.15, 0.35)}
+TARGETS = {"pothole_depth_abs_err_mm": {"median": 10.0, "p90": 20.0}, "area_err_pct_median": 25.0,
+           "crack_length_err_pct_median": 20.0, "severity_agreement": 0.85}
+
+
+def drive(data: Path, preset: str, depth: str, device: str) -> Path:
+    """The synthesized drive of ``preset`` with sparse depth, or its copy without the depth layer."""
+    from pavemap.synth import synthesize
+
+    src = data / f"maint-{preset}-sparse"
+    if not (src / "sequence.json").is_file():
+        t = time.perf_counter()
+        synthesize(src, preset, seed=0, depth="sparse", device=device, progress=False, **DRIVES[preset], **WORLD)
+        print(f"{preset}: synthesized in {time.perf_counter() - t:.0f} s", flush=True)
+    if depth == "sparse":
+        return src
+    dst = data / f"maint-{preset}-none"
+    if not (dst / "sequence.json").is_file():
+        dst.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "semantics", "truth"):
+            if not (dst / sub).exists():
+                (dst / sub).symlink_to((src / sub).resolve())
+        d = json.loads((src / "sequence.json").read_text())
+        for f in d["frames"]:
+            for v in f["views"].values():
+                v["depth"] = None
+        (dst / "sequence.json").write_text(json.dumps(d))
+    return dst
+
+
+def truth_surface(seq_root: Path, surface):  # noqa: ANN001, ANN201
+    """The true surface (truth/height.npy, bilinear) sampled at the mesh's vertices: a HeightField."""
+
+    from pavemap.geometry import HeightField
+    from pavemap.io.truth import read_truth_height
+
+    t = read_truth_height(seq_root)
+    z, inside = t.height_at(surface.grid_xy().reshape(-1, 2).double().cpu())
+    ny, nx = surface.heights.shape
+    return HeightField(surface.x0, surface.y0, surface.res, z.float().reshape(ny, nx),
+                       inside.reshape(ny, nx) & surface.valid.cpu())
+
+
+def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str) -> tuple:
+    """pavemap.run, then fusion again in memory (label image) and the measures on the mesh and on the truth."""
+    import pavemap
+    from pavemap.io.sequence import DETECTIONS_FILE, read_detections, read_sequence
+    from pavemap.maintain.chainage import route_polyline
+    from pavemap.maintain.measure import measure_instances
+    from pavemap.mesh import load_mesh
+    from pavemap.mesh.geometry import mark_observed
+    from pavemap.pipeline import filter_and_fuse
+
+    cfg = pavemap.load_config(CONFIG_OF[preset])
+    cfg.device = device
+    t = time.perf_counter()
+    pavemap.run(seq_dir, cfg, run_dir, overwrite=True, progress=False)  # a rerun resumes: the mesh is reused
+    run_s = time.perf_counter() - t
+    seq = read_sequence(seq_dir)
+    mesh = load_mesh(run_dir / "mesh")
+    dets = read_detections(run_dir / DETECTIONS_FILE)
+    res = filter_and_fuse(seq, dets, mesh.surface, cfg.filter, cfg.fusion, mesh=mesh, progress=False)
+    mark_observed(res.instances, mesh)
+    route = route_polyline(seq.trajectory())
+    on_truth = copy.deepcopy(res.instances)
+    t = time.perf_counter()
+    measure_instances(res.instances, mesh.surface, res.instance_labels, mesh.observed, route)
+    measure_s = time.perf_counter() - t
+    measure_instances(on_truth, truth_surface(seq_dir, mesh.surface), res.instance_labels, None, route)
+    # Diagnostic: the same mesh and detections fused with fusion.association = footprint (each detection
+    # on the vertices under its whole box, not a 0.3 m disk around the box centre's hit)
+    fc = dataclasses.replace(cfg.fusion, association="footprint")
+    alt = filter_and_fuse(seq, dets, mesh.surface, cfg.filter, fc, mesh=mesh, progress=False)
+    measure_instances(alt.instances, mesh.surface, alt.instance_labels, mesh.observed, route)
+    return res.instances, on_truth, alt.instances, {"run": round(run_s, 1), "measure": round(measure_s, 3)}
+
+
+def _q(v: list[float], p: float) -> float | None:
+    return round(float(np.percentile(v, p)), 2) if v else None
+
+
+def _severity(cls: int, measures: dict) -> str | None:
+    try:
+        from pavemap.maintain.policy import severity_level
+    except ImportError:  # the policy module is helper B's; without it there is no severity row
+        return None
+    return severity_level(cls, measures)
+
+
+def truth_measures(props: dict) -> dict:
+    """The truth record in the measure keys the policy reads (carved depth in mm, polyline length)."""
+    m = dict(props)
+    if props.get("depth_max_m") is not None:
+        m["depth_max_mm"] = 1000.0 * props["depth_max_m"]
+    if props.get("cls") in (0, 1):
+        m["crack_length_m"] = props["length_m"]
+    return m
+
+
+def compare(instances: list, on_truth: list, seq_root: Path) -> dict:
+    """Per matched pair of one class: the measure errors (rows) and the severity agreement."""
+    from pavemap.evaluate import match
+    from pavemap.synth.generate import load_truth_defects
+
+    truth = load_truth_defects(seq_root)
+    pxy = np.array([i.centroid for i in instances], float).reshape(-1, 2)
+    gxy = np.array([[t.polygon.centroid.x, t.polygon.centroid.y] for t in truth], float).reshape(-1, 2)
+    pairs = match([i.polygon for i in instances], pxy, [t.polygon for t in truth], gxy)
+    rows = []
+    for p, g, dist in pairs:
+        inst, tr, tp = instances[p], truth[g], truth[g].properties
+        row = {"truth_id": tr.id, "cls": tr.cls, "mapped_cls": inst.cls, "dist_m": round(dist, 3),
+               "area_m2": round(inst.area_m2, 3), "truth_area_m2": tp["area_m2"]}
+        if inst.cls == tr.cls:
+            e, et = inst.extra, on_truth[p].extra
+            if tr.cls == 3:
+                row.update({k: e.get(k) for k in ("measurable", "measure_note", "depth_max_mm", "depth_mean_mm",
+                                                  "volume_l", "depth_sigma_mm")})
+                row.update({"truth_depth_max_mm": round(1000 * tp["depth_max_m"], 1),
+                            "truth_depth_mean_mm": round(1000 * tp["depth_mean_m"], 1),
+                            "truth_volume_l": tp["volume_l"], "on_true_surface_depth_max_mm": et.get("depth_max_mm"),
+                            "on_true_surface_volume_l": et.get("volume_l")})
+            elif tr.cls in (0, 1):
+                row.update({"crack_length_m": e.get("crack_length_m"), "extent_m": round(inst.length_m, 3),
+                            "truth_length_m": tp["length_m"], "orientation_deg": e.get("orientation_deg"),
+                            "orientation_ok": e.get("orientation_ok")})
+            mapped = {**e, "area_m2": inst.area_m2, "length_m": inst.length_m}
+            lv, lt = _severity(inst.cls, mapped), _severity(tr.cls, truth_measures(tp))
+            if lv is not None:
+                row.update({"severity_level": lv, "truth_severity_level": lt})
+        rows.append(row)
+    n_truth = {c: sum(1 for t in truth if t.cls == c) for c in range(4)}
+    return {"rows": rows, "truth_by_class": n_truth, "mapped": len(instances), "matched": len(pairs)}
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Median / p90 figures over matched rows (one preset, or several pooled)."""
+    pits = [r for r in rows if r["cls"] == 3 and r["mapped_cls"] == 3]
+    meas = [r for r in pits if r.get("measurable")]
+    dep = [abs(r["depth_max_mm"] - r["truth_depth_max_mm"]) for r in meas]
+    sdep = [r["depth_max_mm"] - r["truth_depth_max_mm"] for r in meas]
+    mean = [abs(r["depth_mean_mm"] - r["truth_depth_mean_mm"]) for r in meas]
+    vol = [100 * abs(r["volume_l"] - r["truth_volume_l"]) / max(r["truth_volume_l"], 1e-6) for r in meas]
+    on_t = [abs(r["on_true_surface_depth_max_mm"] - r["truth_depth_max_mm"]) for r in pits
+            if r.get("on_true_surface_depth_max_mm") is not None]
+    area = [100 * abs(r["area_m2"] - r["truth_area_m2"]) / r["truth_area_m2"] for r in rows
+            if r["cls"] in (2, 3) and r["mapped_cls"] == r["cls"]]
+    cracks = [r for r in rows if r["cls"] in (0, 1) and r["mapped_cls"] == r["cls"]]
+    clen = [100 * abs(r["crack_length_m"] - r["truth_length_m"]) / r["truth_length_m"] for r in cracks
+            if r.get("crack_length_m") is not None]
+    ext = [100 * abs(r["extent_m"] - r["truth_length_m"]) / r["truth_length_m"] for r in cracks]
+    orient = [r["orientation_ok"] for r in cracks if r.get("orientation_ok") is not None]
+    sev = [r["severity_level"] == r["truth_severity_level"] for r in rows if "severity_level" in r]
+    notes: dict[str, int] = {}
+    for r in pits:
+        if not r.get("measurable"):
+            notes[r.get("measure_note") or "?"] = notes.get(r.get("measure_note") or "?", 0) + 1
+    return {
+        "potholes_matched": len(pits), "potholes_measured": len(meas), "not_measurable": notes,
+        "depth_abs_err_mm": {"median": _q(dep, 50), "p90": _q(dep, 90)},
+        "depth_signed_err_mm_median": _q(sdep, 50),
+        "depth_mean_abs_err_mm_median": _q(mean, 50), "volume_err_pct_median": _q(vol, 50),
+        "depth_abs_err_on_true_surface_mm": {"median": _q(on_t, 50), "p90": _q(on_t, 90)},
+        "area_pairs": len(area), "area_err_pct_median": _q(area, 50),
+        "cracks_matched": len(cracks), "crack_length_err_pct_median": _q(clen, 50),
+        "extent_length_err_pct_median": _q(ext, 50),
+        "orientation_ok_share": round(float(np.mean(orient)), 3) if orient else None,
+        "severity_pairs": len(sev), "severity_agreement": round(float(np.mean(sev)), 3) if sev else None,
+    }
+
+
+def meets(s: dict) -> dict:
+    t = TARGETS
+
+    def ok(v: float | None, lim: float, ge: bool = False) -> bool | None:
+        return None if v is None else (v >= lim if ge else v <= lim)
+
+    return {"depth_median": ok(s["depth_abs_err_mm"]["median"], t["pothole_depth_abs_err_mm"]["median"]),
+            "depth_p90": ok(s["depth_abs_err_mm"]["p90"], t["pothole_depth_abs_err_mm"]["p90"]),
+            "area": ok(s["area_err_pct_median"], t["area_err_pct_median"]),
+            "crack_length": ok(s["crack_length_err_pct_median"], t["crack_length_err_pct_median"]),
+            "severity": ok(s["severity_agreement"], t["severity_agreement"], ge=True)}
+
+
+def previous_seconds(path: Path) -> dict:
+    """{(depth, preset): seconds} of the results file already there (empty when none)."""
+    try:
+        old = json.loads(path.read_text())
+        return {(d, p): e["seconds"] for d, r in old["results"].items() for p, e in r["presets"].items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", nargs="+", default=["kitti-like", "nuscenes-like"])
+    ap.add_argument("--depth", nargs="+", default=["none", "sparse"], choices=("none", "sparse"))
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--data", type=Path, default=Path(os.environ.get("PAVEMAP_BENCH_DATA", "/tmp/pavemap-bench")))
+    ap.add_argument("--results", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    previous = previous_seconds(args.results)  # a rerun resumes the mesh: keep the last run's stage seconds
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
+                            ).stdout.strip()
+    load_start = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    out: dict = {"benchmark": "surface measures of mapped defects vs synthetic truth (issue 16)",
+                 **machine_entry(), "commit": commit, "uptime_start": load_start, "targets": TARGETS,
+                 "drives": {p: {**DRIVES[p], **WORLD, "seed": 0} for p in args.presets}, "results": {}}
+    for depth in args.depth:  # no depth first: pavemap's default
+        rows_all: list[dict] = []
+        rows_alt: list[dict] = []
+        per = {}
+        for preset in args.presets:
+            t = time.perf_counter()
+            seq_dir = drive(args.data, preset, depth, args.device)
+            synth_s = time.perf_counter() - t
+            inst, on_truth, alt, secs = map_and_measure(seq_dir, args.data / f"maint-run-{preset}-{depth}",
+                                                        preset, args.device)
+            cmp = compare(inst, on_truth, seq_dir)
+            rows_all += cmp["rows"]
+            alt_rows = compare(alt, alt, seq_dir)["rows"]
+            rows_alt += alt_rows
+            s = summarise(cmp["rows"])
+            per[preset] = {**s, "meets": meets(s), "mapped": cmp["mapped"], "matched": cmp["matched"],
+                           "truth_by_class": cmp["truth_by_class"],
+                           "seconds": {"synth": round(synth_s, 1), **secs, "previous": previous.get((depth, preset))},
+                           "footprint_association": summarise(alt_rows), "pairs": cmp["rows"]}
+            print(depth, preset, json.dumps({k: v for k, v in per[preset].items() if k != "pairs"}), flush=True)
+        pooled = summarise(rows_all)
+        alt_pooled = summarise(rows_alt)
+        out["results"][depth] = {"pooled": {**pooled, "meets": meets(pooled)},
+                                 "pooled_footprint_association": {**alt_pooled, "meets": meets(alt_pooled)},
+                                 "presets": per}
+    out["uptime_end"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    out["seconds_total"] = round(time.perf_counter() - t0, 1)
+    write_results(args.results, out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""Maintenance measures (issue 16): what to repair first.
+
+The stage after fusion: fused instances in, the same instances out with what a road engineer needs,
+and the road cut into segments with a condition index. Modules, following the data:
+
+- :mod:`.chainage`  distance along the route and lateral offset (one implementation for all users);
+- :mod:`.measure`   pothole depth / volume, crack length / orientation, alligator area from the 3D surface;
+- :mod:`.policy`    the maintenance policy (YAML a city can replace): severity levels, certainty, urgency;
+- :mod:`.segments`  chainage segments with a PCI-like condition index.
+
+Record keys written into ``DefectInstance.extra`` are listed in
+:data:`pavemap.export.geojson.PROPERTY_SCHEMA` (the one defect schema).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from pavemap.maintain.chainage import chainage, route_polyline
+from pavemap.maintain.policy import (
+    POSITIONS,
+    UNASSESSED,
+    MaintenanceConfig,
+    Policy,
+    certainty,
+    lane_positions,
+    load_policy,
+    priority_ranks,
+    severity_of,
+    urgency,
+)
+from pavemap.maintain.segments import Segment, build_segments
+from pavemap.types import DefectInstance, Sequence
+
+
+def _policy(policy: Policy | str | os.PathLike | None) -> Policy:
+    return policy if isinstance(policy, Policy) else load_policy(policy)
+
+
+def measures_of(inst: DefectInstance) -> dict:
+    """The measures dict of a mapped defect for the policy: its extras plus ``area_m2`` and ``length_m``."""
+    return {**inst.extra, "area_m2": float(inst.area_m2), "length_m": float(inst.length_m)}
+
+
+def assess_instances(instances: list[DefectInstance], route: np.ndarray | None,
+                     policy: Policy | str | os.PathLike | None = None, lane_width_m: float | None = None) -> None:
+    """Severity level, certainty, chainage / offset / lane position, urgency and rank of every instance (in place).
+
+    route (M, 2) world metres (:func:`route_polyline`), or None / empty: then chainage, offset and lane
+    position stay unset and urgency takes the largest position weight (a defect of unknown position may
+    lie in a wheel path). Sets ``inst.priority`` to the urgency text and ``extra`` keys severity_level,
+    certainty, chainage_m, offset_m, lane_position, urgency_score, priority_rank; a severity taken from a
+    fallback measure (a pothole without a measurable depth: its area) is named in ``measure_note``.
+    """
+    pol = _policy(policy)
+    if not instances:
+        return
+    have_route = route is not None and len(route) > 0
+    if have_route:
+        xy = np.array([inst.centroid for inst in instances], dtype=np.float64).reshape(-1, 2)
+        s, o = chainage(np.asarray(route, dtype=np.float64), xy)
+        pos = lane_positions(o, pol, lane_width_m)
+    worst = max(POSITIONS, key=lambda p: pol.position_weight[p])
+    scores = []
+    for k, inst in enumerate(instances):
+        m = measures_of(inst)
+        level, used, value = severity_of(inst.cls, m, pol)
+        if used != pol.severity[inst.cls].measure:  # the class's fallback decided: say so in the record
+            why = str(inst.extra.get("measure_note") or f"no {pol.severity[inst.cls].measure}")
+            inst.extra["measure_note"] = f"{why}; severity from {used} = {value:.3g}"
+        ex = inst.extra
+        ex["severity_level"] = level
+        ex["certainty"] = certainty(inst.probability, inst.observations, pol)
+        if have_route:
+            ex["chainage_m"] = round(float(s[k]), 2)
+            ex["offset_m"] = round(float(o[k]), 2)
+            ex["lane_position"] = str(pos[k])
+        inst.priority, score = urgency(inst.cls, level, m, str(pos[k]) if have_route else worst, pol)
+        ex["urgency_score"] = score
+        scores.append(score)
+    ranks = priority_ranks([i.priority for i in instances], scores, [i.id for i in instances])
+    for inst, r in zip(instances, ranks, strict=True):
+        inst.extra["priority_rank"] = r
+
+
+def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels: np.ndarray | None = None,  # noqa: ANN001
+           observed=None, policy: Policy | str | os.PathLike | None = None, segment_m: float = 100.0,  # noqa: ANN001
+           lane_width_m: float | None = None) -> list[Segment]:
+    """The maintenance stage: measure, grade and rank the fused instances (in place) and cut the road into segments.
+
+    instances: stage 3's :class:`DefectInstance` list; seq: the drive (its trajectory is the route);
+    surface: the HeightField the instances lie on (None: no surface measures, severity from the
+    fallback measures); labels (ny, nx) int32 instance ids on the surface's vertex grid
+    (``FusionResult.instance_labels``); observed (ny, nx) bool or None (the mesh's observed layer);
+    policy: a :class:`Policy`, a policy YAML path, or None / "" for the built-in one.
+
+    Runs :func:`pavemap.maintain.measure.measure_instances` (depth, volume, crack length, orientation) ->
+    chainage, offset, lane position -> severity level, certainty -> urgency, priority rank ->
+    segments (each instance's ``extra["segment"]``). Returns the segments (``FusionResult.segments``).
+    """
+    from pavemap.maintain.measure import measure_instances
+
+    pol = _policy(policy)
+    route = route_polyline(seq.trajectory()) if seq.frames else np.zeros((0, 2))
+    if surface is not None:
+        measure_instances(instances, surface, labels, observed=observed, route=route if len(route) else None)
+    assess_instances(instances, route, pol, lane_width_m)
+    if len(route) == 0:
+        return []
+    records = [{**measures_of(i), "cls": i.cls} for i in instances]
+    segments = build_segments(route, records, pol, segment_m, lane_width_m)
+    for inst, r in zip(instances, records, strict=True):
+        inst.extra["segment"] = r.get("segment")
+    return segments
+
+
+def summary(instances: list[DefectInstance], segments: list[Segment]) -> dict:
+    """``metrics.json``'s ``maintenance`` entry: defects per priority, severity level and certainty; the index."""
+    from collections import Counter
+
+    def count(key: str) -> dict:
+        return dict(Counter(str(i.extra.get(key)) for i in instances if i.extra.get(key) is not None))
+
+    pci = [s.pci for s in segments]
+    return {"priority": dict(Counter(i.priority for i in instances)), "severity_level": count("severity_level"),
+            "certainty": count("certainty"), "segments": len(segments),
+            "pci_mean": round(float(np.mean(pci)), 1) if pci else None,
+            "pci_min": round(float(np.min(pci)), 1) if pci else None,
+            "index": "PCI-like, not a certified ASTM D6433 survey"}
+
+
+__all__ = ["UNASSESSED", "MaintenanceConfig", "Policy", "Segment", "assess", "assess_instances", "load_policy",
+           "measures_of", "summary"]
