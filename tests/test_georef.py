@@ -119,8 +119,10 @@ def test_mapped_defects_within_a_metre_on_a_synthetic_drive(tmp_path):
     median error of the mapped defects against their true WGS84 positions is below 1 m (the issue's
     goal; a single drive is above 1 m about 3 times in 10 at this noise, see bench/results/geo.json).
     """
+    import pyogrio.raw
     from shapely.geometry import shape
 
+    from pavemap.export.report import build_report_html
     from pavemap.io.sequence import read_sequence
     from pavemap.synth import detect_sequence, synthesize
     from test_gps import write_gpx
@@ -138,8 +140,15 @@ def test_mapped_defects_within_a_metre_on_a_synthetic_drive(tmp_path):
     assert r.exit_code == 0, r.output
     fitted = read_sequence(root).geo_origin
     assert fitted.georef["fixes"] >= 25 and fitted.lat != true.lat
+    rms = json.loads((root / "sequence.json").read_text())["geo_origin"]["georef"]["rms_m"]
+    assert 2.0 < rms < 6.0 and fitted.georef["rms_m"] == rms  # the residual of the fit, in sequence.json
     r = CliRunner().invoke(app, ["fuse", str(root), "--surface", "truth", "-o", str(tmp_path / "run")])
     assert r.exit_code == 0, r.output
+    meta, *_, values = pyogrio.raw.read(tmp_path / "run" / "survey.gpkg", layer="survey", read_geometry=False)
+    survey = {n: v[0] for n, v in zip(meta["fields"], values, strict=True)}
+    assert survey["georef_rms_m"] == pytest.approx(rms) and survey["georef_source"].endswith("drive.gpx")
+    html = build_report_html([], geo_origin=fitted)  # the report of a `pavemap run` on this sequence
+    assert f"drive.gpx: residual RMS {rms:.2f} m over {fitted.georef['inliers']} of {fitted.georef['fixes']}" in html
     run = json.loads((tmp_path / "run" / "defects.geojson").read_text())["features"]
     truth = json.loads((root / "truth" / "defects.geojson").read_text())["features"]
     tx = np.array([shape(f["geometry"]).centroid.coords[0] for f in truth])  # world metres

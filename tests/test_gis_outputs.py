@@ -12,6 +12,8 @@ import json
 import shutil
 import struct
 import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pyogrio
@@ -23,6 +25,7 @@ from typer.testing import CliRunner
 
 from pavemap.cli import app
 from pavemap.errors import PavemapError
+from pavemap.export.geojson import PROPERTY_SCHEMA
 from pavemap.export.geotiff import NODATA
 from pavemap.export.report import build_report_html
 from pavemap.export.sample import sample_inputs
@@ -117,6 +120,18 @@ def test_georeferenced_gpkg_layers(geo_run, tiny_seq):
         assert "3D Measured Line String" in text and f'ID["EPSG",{epsg}]' in text
 
 
+def test_every_defect_layer_has_the_one_schema(geo_run, local_run):
+    """defects, defect_points, baseline_defects, defects.fgb and defects.csv: exactly the fields of
+    PROPERTY_SCHEMA (lon/lat only with a geo origin), layers in its order; `pavemap run` writes the same
+    (tests/test_run_outputs.py), the register's observations too (tests/test_network.py)."""
+    for run, geo in ((geo_run, True), (local_run[1], False)):
+        want = [n for n, *_ in PROPERTY_SCHEMA if geo or n not in ("lon", "lat")]
+        layers = [(run / "survey.gpkg", n) for n in ("defects", "defect_points", "baseline_defects")]
+        for path, layer in [*layers, (run / "defects.fgb", None)]:
+            assert list(pyogrio.read_info(path, layer=layer)["fields"]) == want, (path, layer)
+        assert sorted((run / "defects.csv").read_text().splitlines()[0].split(",")) == sorted(want)
+
+
 def test_georeferenced_raster_is_a_utm_cog_with_nodata(geo_run, tiny_seq):
     tif = geo_run / "defect_map.tif"
     o = tiny_seq.geo_origin
@@ -129,6 +144,10 @@ def test_georeferenced_raster_is_a_utm_cog_with_nodata(geo_run, tiny_seq):
     cogeo = pytest.importorskip("rio_cogeo.cogeo")
     valid, errors, _ = cogeo.cog_validate(str(tif))
     assert valid, errors
+    rio = shutil.which("rio", path=str(Path(sys.executable).parent)) or shutil.which("rio")
+    if rio:  # the command line a GIS person runs
+        r = subprocess.run([rio, "cogeo", "validate", str(tif)], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0 and "is a valid cloud optimized GeoTIFF" in r.stdout, r.stdout + r.stderr
     if GDALINFO:
         out = subprocess.run([GDALINFO, str(tif)], capture_output=True, text=True, timeout=60).stdout
         assert "LAYOUT=COG" in out and "NoData Value=-9999" in out and "UTM zone" in out
@@ -150,19 +169,35 @@ def test_georeferenced_geojson_fgb_kml(geo_run):
     assert "lon" in header and "lat" in header
 
 
+def assert_no_wgs84_layer(folder) -> list[str]:
+    """Every layer file under ``folder`` (GeoPackage, FlatGeobuf, GeoTIFF: each layer) is in the local engineering
+    CRS, read back by GDAL (pyogrio / rasterio, and ogrinfo / gdalinfo where installed); no GeoJSON or KML
+    (WGS84 by definition) exists. Returns the files checked."""
+    assert not list(folder.rglob("*.geojson")) and not list(folder.rglob("*.km[lz]"))
+    checked = []
+    for path in sorted([*folder.rglob("*.gpkg"), *folder.rglob("*.fgb")]):
+        for layer in [n for n, _ in pyogrio.list_layers(path)] if path.suffix == ".gpkg" else [None]:
+            crs = _crs(path, layer)
+            assert crs is not None and not crs.is_geographic and crs.to_epsg() != 4326, (path, layer)
+            assert "pavemap local world frame" in crs.to_wkt(), (path, layer)
+            text = _ogrinfo(path, *([layer] if layer else []))
+            assert 'ID["EPSG",4326]' not in text and "WGS 84" not in text, (path, layer)
+            assert not OGRINFO or 'ENGCRS["pavemap local world frame' in text, text  # ogrinfo printed its CRS
+        checked.append(path.name)
+    for path in sorted(folder.rglob("*.tif")):
+        with rasterio.open(path) as ds:
+            assert not ds.crs.is_geographic and "pavemap local world frame" in ds.crs.to_wkt(), path
+        if GDALINFO:
+            text = subprocess.run([GDALINFO, str(path)], capture_output=True, text=True, timeout=60).stdout
+            assert "pavemap local world frame" in text and "WGS 84" not in text, path
+        checked.append(path.name)
+    return checked
+
+
 @pytest.mark.filterwarnings("ignore:Measured \\(M\\) geometry types")
 def test_run_without_geo_origin_has_no_wgs84_layer(local_run, tmp_path):
     seq, run = local_run
-    assert not list(run.glob("*.geojson")) and not list(run.glob("*.km?"))
-    for path, layer in [(run / "survey.gpkg", n) for n, _ in pyogrio.list_layers(run / "survey.gpkg")] + [
-            (run / "defects.fgb", None)]:
-        crs = _crs(path, layer)
-        assert crs is not None and not crs.is_geographic and crs.to_epsg() != 4326, (path, layer)
-        assert "pavemap local world frame" in crs.to_wkt()
-        text = _ogrinfo(path, *([layer] if layer else []))
-        assert 'ID["EPSG",4326]' not in text and "WGS 84" not in text
-    with rasterio.open(run / "defect_map.tif") as ds:
-        assert not ds.crs.is_geographic and "pavemap local world frame" in ds.crs.to_wkt()
+    assert {"survey.gpkg", "defects.fgb", "defect_map.tif"} <= set(assert_no_wgs84_layer(run))
     # eval and compare still read the run (from survey.gpkg)
     r = CliRunner().invoke(app, ["eval", str(run), "--truth", str(seq)])
     assert r.exit_code == 0, r.output
@@ -170,6 +205,7 @@ def test_run_without_geo_origin_has_no_wgs84_layer(local_run, tmp_path):
     r = CliRunner().invoke(app, ["compare", str(run), str(run), "-o", str(tmp_path / "cmp")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "cmp" / "changes.json").read_text())["counts"]["unchanged"] > 0
+    assert assert_no_wgs84_layer(tmp_path / "cmp") == ["changes.gpkg"]  # compare's layer: local too
 
 
 def test_crs_option(tiny_seq, local_run, tmp_path):
@@ -177,12 +213,29 @@ def test_crs_option(tiny_seq, local_run, tmp_path):
     with rasterio.open(out / "defect_map.tif") as ds:
         assert ds.crs.to_epsg() == 25832
     assert _crs(out / "survey.gpkg", "defects").to_epsg() == 25832
-    r = CliRunner().invoke(app, ["fuse", str(tiny_seq.root), "--surface", "truth", "-o", str(tmp_path / "x"),
-                                 "--crs", "EPSG:99999"])
-    assert r.exit_code == 2 and "EPSG:99999" in r.output and "Traceback" not in r.output
-    r = CliRunner().invoke(app, ["fuse", str(local_run[0]), "--surface", "truth", "-o", str(tmp_path / "y"),
-                                 "--crs", "EPSG:25832"])
-    assert r.exit_code == 2 and "no geo origin" in r.output
+
+
+@pytest.mark.parametrize("command", ["fuse", "run"])
+@pytest.mark.parametrize("code", ["EPSG:999999", "EPSG:4326"])
+def test_a_crs_that_does_not_exist_or_is_not_projected_stops_before_anything_is_written(tiny_seq, tmp_path, command,
+                                                                                         code):
+    from fuzz_support import check, invoke
+
+    args = ["--surface", "truth"] if command == "fuse" else ["--epochs", "1"]
+    r = invoke(command, tiny_seq.root, *args, "-o", tmp_path / "x", "--crs", code)
+    check(r, 2, code, "is not a projected CRS" if code == "EPSG:4326" else "not a coordinate reference system")
+    assert [x for x in r.output.splitlines() if x.startswith("error:")] == [r.output.splitlines()[-1]]
+    assert not (tmp_path / "x").exists()  # no folder, no layer, nothing claims a position
+
+
+@pytest.mark.parametrize("command", ["fuse", "run"])
+def test_a_projected_crs_without_a_geo_origin_stops_before_anything_is_written(local_run, tmp_path, command):
+    from fuzz_support import check, invoke
+
+    args = ["--surface", "truth"] if command == "fuse" else ["--epochs", "1"]
+    check(invoke(command, local_run[0], *args, "-o", tmp_path / "y", "--crs", "EPSG:25832"), 2,
+          "--crs EPSG:25832", "no geo origin")
+    assert not (tmp_path / "y").exists()
 
 
 def test_run_result_geojson_and_dataframe():
@@ -218,3 +271,32 @@ def test_report_shows_lat_lon_next_to_the_class():
     # the full table: lat / lon right after class and urgency (chainage, when known, between)
     full = [k for k in keys(rest) if k != "chainage_m"]
     assert full[:5] == ["id", "code", "priority", "lat", "lon"], full
+
+
+def test_survey_record_of_a_georeferenced_drive_with_absolute_times():
+    """The survey layer's record: date (from absolute frame times), vehicle, cameras, software, CRS and the
+    georeferencing residual; the trajectory's start and end as UTC times."""
+    import datetime as dt
+
+    from pavemap import __version__
+    from pavemap.export.gis import _Projector, survey_record, trajectory_layer
+    from pavemap.types import GeoOrigin
+    from test_georef import _seq
+
+    seq = _seq(length_m=50.0)
+    t0 = dt.datetime(2025, 3, 4, 23, 59, 58, tzinfo=dt.UTC).timestamp()
+    for f in seq.frames:
+        f.timestamp += t0
+    origin = GeoOrigin(48.1, 11.5, 520.0, 30.0, georef={"source": "/x/drive.nmea", "fixes": 9, "inliers": 8,
+                                                        "rms_m": 2.345, "scale_applied": 1.0, "warnings": ["w"]})
+    crs = CRS.from_epsg(utm_epsg(origin.lon, origin.lat))
+    rec = survey_record(seq, origin, crs, 4, vehicle="VAN-7")
+    assert rec["date"] == "2025-03-04" and rec["vehicle"] == "VAN-7" and rec["cameras"] == "front 64x48"
+    assert rec["software"] == f"pavemap {__version__}" and rec["crs"].startswith("EPSG:32632")
+    assert rec["georef_rms_m"] == 2.345 and (rec["georef_fixes"], rec["georef_inliers"]) == (9, 8)
+    assert rec["georef_source"] == "/x/drive.nmea" and rec["georef_warnings"] == "w" and rec["defects"] == 4
+    _, fields = trajectory_layer(seq, _Projector(origin, crs), origin)
+    assert fields["start_time"].startswith("2025-03-04T23:59:58") and fields["end_time"].startswith("2025-03-05")
+    assert "Unix time" in fields["m_values"] and fields["length_m"] == pytest.approx(50.0, rel=0.02)
+    plain = survey_record(seq, None, crs, 0)
+    assert plain["georeferenced"] is False and np.isnan(plain["origin_lat"]) and np.isnan(plain["georef_rms_m"])

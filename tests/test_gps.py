@@ -113,6 +113,17 @@ def write_gpx(path, t, lat, lon, alt) -> None:
                     f'xmlns="http://www.topografix.com/GPX/1/1"><trk><trkseg>{pts}</trkseg></trk></gpx>')
 
 
+def write_gps_csv(path, t, lat, lon, alt) -> None:
+    """A separate GPS file: ``time`` in ISO 8601 (UTC), ``latitude``/``longitude``/``ele`` columns."""
+    rows = ["time,latitude,longitude,ele"] + [
+        f"{dt.datetime.fromtimestamp(s, dt.UTC).isoformat(timespec='milliseconds')},{a:.9f},{b:.9f},{e:.2f}"
+        for s, a, b, e in zip(t, lat, lon, alt, strict=True)]
+    path.write_text("\n".join(rows) + "\n")
+
+
+WRITERS = {"gpx": write_gpx, "nmea": write_nmea, "csv": write_gps_csv}
+
+
 def _fixes(xyz, hz: float = 1.0, shift: float = 0.3):
     """GPS fix times (absolute, off the frames' clock by ``shift`` s) and noise-free positions."""
     t = np.arange(shift, len(xyz) - 1, 1.0 / hz)
@@ -185,17 +196,19 @@ def test_folder_import_with_gps_columns_in_poses_csv(tmp_path):
     assert on_disk["kind"] == "csv" and on_disk["rms_m"] < 0.05 and on_disk["inliers"] == N
 
 
-@pytest.mark.parametrize("fmt", ["gpx", "nmea"])
+@pytest.mark.parametrize("fmt", ["gpx", "nmea", "csv"])
 def test_folder_import_with_a_gps_file_matched_by_time(tmp_path, fmt):
     imgs, cams, poses, xyz = _drive(tmp_path)
     t, lat, lon, alt = _fixes(xyz)
     gps = tmp_path / f"track.{fmt}"
-    (write_gpx if fmt == "gpx" else write_nmea)(gps, t, lat, lon, alt)
+    WRITERS[fmt](gps, t, lat, lon, alt)
     r = CliRunner().invoke(app, ["import", "folder", str(imgs), "--cameras", str(cams), "--poses", str(poses),
                                  "--gps", str(gps), "--no-semantics", "--out", str(tmp_path / "seq")])
     assert r.exit_code == 0, r.output
     assert "RMS" in r.output
     _check(read_sequence(tmp_path / "seq"), xyz, 0.5)
+    rec = json.loads((tmp_path / "seq" / "sequence.json").read_text())["geo_origin"]["georef"]
+    assert rec["kind"] == fmt and rec["fixes"] == len(t) and 0 <= rec["rms_m"] < 0.5  # the residual, on disk
     info = CliRunner().invoke(app, ["info", str(tmp_path / "seq")])  # the georeferencing record, not only lat/lon
     assert f"track.{fmt}" in info.output and "fixes, RMS" in info.output, info.output
 
@@ -243,7 +256,9 @@ def test_kitti_import_with_oxts(tmp_path):
     args = ["import", "kitti", str(tmp_path / "odo"), "--sequence", "08", "--camera", "0", "--no-lidar",
             "--no-semantics", "--oxts", str(oxts.parent), "--out", str(tmp_path / "seq")]
     r = CliRunner().invoke(app, args)  # 08 has 4071 frames in the devkit: this one is another drive
-    assert r.exit_code != 0 and "--oxts-first" in r.output and "4071" in r.output
+    assert r.exit_code == 2 and "--oxts-first" in r.output and "4071" in r.output
+    left = [p.name for p in (tmp_path / "seq").rglob("*") if p.is_file()]
+    assert left in ([], [".pavemap-owner.json"]), left  # the images copied before the check are gone again
     r = CliRunner().invoke(app, [*args, "--oxts-first", "1100"])
     assert r.exit_code == 0, r.output
     s = read_sequence(tmp_path / "seq")
@@ -284,17 +299,67 @@ def test_bad_gps_inputs_name_the_file_and_the_problem(tmp_path):
         assert not (tmp_path / s / "sequence.json").exists()
 
 
-def test_standing_vehicle_and_hand_origin(tmp_path):
-    imgs, cams, poses, xyz = _drive(tmp_path)
+def _standing(poses) -> None:
+    """Rewrite a poses.csv so that the vehicle stands at the world origin (tx = ty = 0) in every frame."""
     text = poses.read_text().splitlines()
     cols = text[0].split(",")
-    still = [text[0]] + [",".join(v if c not in ("tx", "ty") else "0.0" for c, v in zip(cols, r.split(","),
-                                                                                          strict=True))
-                         for r in text[1:]]
-    poses.write_text("\n".join(still) + "\n")
+    still = [",".join("0.0" if c in ("tx", "ty") else v for c, v in zip(cols, r.split(","), strict=True))
+             for r in text[1:]]
+    poses.write_text("\n".join([text[0], *still]) + "\n")
+
+
+def _bad_track(tmp_path, case: str):  # noqa: ANN202
+    """A drive and a GPS input that does not fit it: (imgs, cameras, poses, GPS file, words of the message)."""
+    imgs, cams, poses, xyz = _drive(tmp_path, gps_columns=case == "standing-columns")
+    t, lat, lon, alt = _fixes(xyz)
+    gps = tmp_path / f"{case}.gpx"
+    if case == "two-fixes":
+        t, lat, lon, alt, words = t[:2], lat[:2], lon[:2], alt[:2], ["2 GPS fix(es)", "at least 3"]
+    elif case == "no-overlap":  # an hour later than the frames
+        t, words = t + 3600, ["do not overlap the frames", "--gps-offset"]
+    elif case == "5-km-track":  # the drive's shape, 5 km across instead of its 140 m
+        lt = local_tangent(TRUE)
+        x, y = lt.from_lonlat(lon, lat)
+        k = 5000.0 / math.hypot(np.ptp(x), np.ptp(y))
+        lon, lat = lt.to_lonlat(k * x, k * y)
+        words = ["the GPS track spans", "but the drive spans", "not this drive's track"]
+    else:  # the vehicle stands still while the GPS moves (a file, or the poses.csv's own lat/lon columns)
+        _standing(poses)
+        words = ["spans only 0.0 m", "standing vehicle", "--geo-origin"]
+        if case == "standing-columns":
+            return imgs, cams, poses, poses, words
+    write_gpx(gps, t, lat, lon, alt)
+    return imgs, cams, poses, gps, words
+
+
+@pytest.mark.parametrize("case", ["two-fixes", "no-overlap", "5-km-track", "standing", "standing-columns"])
+def test_bad_gps_on_the_command_line(tmp_path, case):
+    """One line naming the GPS file and the problem, exit status 2, no traceback; no image copied and no
+    sequence.json (nothing claims a position); `import gps` leaves an existing sequence.json as it was."""
+    from fuzz_support import check, invoke
+    from pavemap.io.owned import MARKER
+
+    imgs, cams, poses, gps, words = _bad_track(tmp_path, case)
+    out = tmp_path / "seq"
+    r = invoke("import", "folder", imgs, "--cameras", cams, "--poses", poses, "--no-semantics", "--out", out,
+               *(["--gps", gps] if gps != poses else []))
+    check(r, 2, f"error: {gps}: ", *words)
+    assert len(r.output.strip().splitlines()) == 1, r.output
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.name != MARKER) == []
+    if gps == poses:
+        return
+    import_folder(imgs, cams, poses, tmp_path / "plain")  # without GPS: no geo origin
+    before = (tmp_path / "plain" / "sequence.json").read_bytes()
+    check(invoke("import", "gps", tmp_path / "plain", "--gps", gps), 2, f"error: {gps}: ", *words)
+    assert (tmp_path / "plain" / "sequence.json").read_bytes() == before
+
+
+def test_standing_vehicle_and_hand_origin(tmp_path):
+    imgs, cams, poses, xyz = _drive(tmp_path)
+    _standing(poses)
     t, lat, lon, alt = _fixes(xyz)
     write_gpx(tmp_path / "t.gpx", t, lat, lon, alt)
-    with pytest.raises(ERR, match="standing vehicle"):
+    with pytest.raises(ERR, match=r"t\.gpx: the drive 'imgs' spans only 0\.0 m .* standing vehicle"):
         import_folder(imgs, cams, poses, tmp_path / "s", geo=GeoInput(gps=str(tmp_path / "t.gpx")))
     seq = import_folder(imgs, cams, poses, tmp_path / "s", geo=GeoInput(origin="52.52,13.405,34,70"))
     assert seq.geo_origin.heading_deg == 70.0 and seq.geo_origin.georef["source"].startswith("--geo-origin")

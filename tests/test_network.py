@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from pyproj import CRS
 
 from pavemap.errors import PavemapError
 from pavemap.export.gis import read_defect_layer
@@ -177,6 +178,24 @@ def test_register_flags_new_and_grown_as_in_the_truth(serial, world):
     assert "jan-van2" in page and "<svg" in page and page.count("<tr>") >= len(rows) + len(DRIVES)
 
 
+def test_register_and_drive_layers_carry_the_defect_schema(serial):
+    """Every drive's defect layers hold exactly the defect schema; the register's observations hold all of it
+    (the drive's number of the defect as ``instance_id``), all in the drives' UTM zone."""
+    import pyogrio
+
+    from pavemap.export.geojson import PROPERTY_SCHEMA
+
+    net, _, _ = serial
+    schema = [n for n, *_ in PROPERTY_SCHEMA]
+    for name, *_ in DRIVES:
+        assert list(pyogrio.read_info(net / "drives" / name / "survey.gpkg", layer="defects")["fields"]) == schema
+    fields = list(pyogrio.read_info(net / "register.gpkg", layer="observations")["fields"])
+    assert [f for f in fields if f in schema] == schema[1:] and {"instance_id", "drive", "date"} <= set(fields)
+    for layer, _ in pyogrio.list_layers(net / "register.gpkg"):
+        epsg = CRS.from_user_input(pyogrio.read_info(net / "register.gpkg", layer=layer)["crs"]).to_epsg()
+        assert epsg is not None and epsg // 100 in (326, 327), (layer, epsg)  # WGS 84 / UTM north or south
+
+
 def test_rerun_redoes_no_finished_drive(serial, world):
     root, m = world
 
@@ -209,6 +228,7 @@ def test_duplicate_names_are_refused(world):
         load_manifest(_manifest(root / "dup.yaml", [d, d]))
 
 
+@pytest.mark.filterwarnings("ignore:Measured \\(M\\) geometry types")
 def test_drive_without_geo_origin_is_processed_but_refused_for_the_register(tiny_seq, tmp_path):
     from typer.testing import CliRunner
 
@@ -234,6 +254,10 @@ def test_drive_without_geo_origin_is_processed_but_refused_for_the_register(tiny
         build_register(tmp_path / "net")
     r = CliRunner().invoke(app, ["register", str(tmp_path / "net")])
     assert r.exit_code == 2 and "no geo origin" in r.output and "Traceback" not in r.output
+    # the drive's run (`pavemap run` on a task): no layer anywhere in the network folder reads as EPSG:4326
+    from test_gis_outputs import assert_no_wgs84_layer
+
+    assert {"survey.gpkg", "defect_map.tif"} <= set(assert_no_wgs84_layer(tmp_path / "net"))
 
 
 @pytest.mark.parametrize("command", ["batch", "register"])

@@ -101,6 +101,13 @@ def test_one_defect_schema_in_every_file(counted_run, tiny_seq):
     assert set(CSV_COLUMNS + GEO_COLUMNS) <= SCHEMA
     header = (out / "defects.csv").read_text().splitlines()[0].split(",")
     assert set(header) <= SCHEMA
+    # the GeoJSON: schema keys (those known) plus the fusion's vertex counts; survey.gpkg: exactly the schema,
+    # as `pavemap fuse` writes it (tests/test_gis_outputs.py)
+    assert all(set(f["properties"]) <= SCHEMA | {"vertices", "vertex_observations"} for f in run_fc["features"])
+    import pyogrio
+
+    for layer in ("defects", "defect_points", "baseline_defects"):
+        assert list(pyogrio.read_info(out / "survey.gpkg", layer=layer)["fields"]) == [n for n, *_ in PROPERTY_SCHEMA]
 
 
 def test_cli_eval_on_a_run_folder(counted_run, tiny_seq):

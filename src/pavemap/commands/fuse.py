@@ -86,6 +86,9 @@ def register(app: typer.Typer) -> None:
 
         s = read_sequence(seq)
         rc = opt.resolve_config(s, config, sets, {"output.crs": crs})
+        from pavemap.geo.crs import output_crs
+
+        output_crs(s.geo_origin, rc.output.crs)  # a CRS the sequence cannot have fails before anything is written
         cfg = rc.fusion
         det_path = detections if detections is not None else seq / DETECTIONS_FILE
         if not det_path.exists():

@@ -171,10 +171,13 @@ def _recentred(lon: np.ndarray, lat: np.ndarray, p: np.ndarray, inl: np.ndarray,
 
 
 def _check_shape(track: GpsTrack, p: np.ndarray, q: np.ndarray, scale_free: bool, seq: Sequence) -> None:
+    """Refuse a drive too short to give a heading and (metric poses) a track of another size; ``p`` (N, 2) world
+    and ``q`` (N, 2) fix positions, metres, of the N paired fixes. The message names the GPS file."""
     drive = _extent(p)
     if drive < MIN_DRIVE_M:
-        raise PavemapError(f"{seq.name}: the drive spans only {drive:.1f} m while GPS fixes were taken (a standing "
-                           "vehicle?): its heading cannot be fitted; give --geo-origin LAT,LON,ALT,HEADING")
+        raise PavemapError(f"{track.source}: the drive {seq.name!r} spans only {drive:.1f} m while these {len(p)} "
+                           "GPS fixes were taken (a standing vehicle?): its heading cannot be fitted; give "
+                           "--geo-origin LAT,LON,ALT,HEADING")
     ratio = _extent(q) / drive
     if not scale_free and not (1 / EXTENT_RATIO <= ratio <= EXTENT_RATIO):
         raise PavemapError(f"{track.source}: the GPS track spans {_extent(q):.0f} m but the drive spans {drive:.0f} m "
