@@ -24,9 +24,9 @@ from common import machine_entry, write_results  # noqa: E402
 from pavemap.geometry.grid import GridSpec  # noqa: E402
 from pavemap.geometry.triangulate import local_ground, sample_grid  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
+from pavemap.mesh.geometry import check_surface
 from pavemap.mesh.ground_points import (  # noqa: E402
     GroundConfig,
-    check_surface,
     estimate_camera_height,
     find_ground_points,
 )

@@ -11,10 +11,9 @@ import pytest
 from pavemap.geometry.grid import GridSpec
 from pavemap.geometry.triangulate import check_residuals, sample_grid, triangulate_tracks
 from pavemap.io.sequence import read_sequence
-from pavemap.mesh.geometry import depth_image
+from pavemap.mesh.geometry import check_surface, depth_image
 from pavemap.mesh.ground_points import (
     GroundConfig,
-    check_surface,
     estimate_camera_height,
     find_ground_points,
 )

@@ -57,14 +57,25 @@ def test_grid_covers_the_road_the_end_frames_look_at():
     T[:3, 3] = [10.0, 0.0, 1.6]
     down = T.copy()
     down[:3, :3] = np.array([[0, 0, 0.2], [-1, 0, 0], [0, -1, -0.98]], dtype=float)  # looking at its feet
-    paths = view_paths([View("front", "x.png", T), View("down", "y.png", down)], 30.0)
+    side = T.copy()
+    side[:3, :3] = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], dtype=float)  # camera +z = world +y (left)
+    back = T.copy()
+    back[:3, :3] = np.array([[0, 0, -1], [1, 0, 0], [0, -1, 0]], dtype=float)  # camera +z = world -x
+    last = [(-1, View(n, "x.png", m)) for n, m in (("front", T), ("down", down), ("left", side), ("back", back))]
+    paths = view_paths(last, traj, 30.0)
+    # only the camera looking out of the path's end: not the one at its feet, nor a surround rig's side
+    # and back cameras (whose road the crop already holds; their axes would pull the mesh into buildings)
     assert len(paths) == 1 and np.allclose(paths[0], [[10.0, 0.0], [40.0, 0.0]])
+    first_back = back.copy()
+    first_back[:3, 3] = [0.0, 0.0, 1.6]
+    assert np.allclose(view_paths([(0, View("back", "b.png", first_back))], traj, 30.0)[0], [[0, 0], [-30, 0]])
     g = build_grid(traj, 0.1, 2.0, paths)
     X, Y = g.spec.centres()
     ahead = (X > 20) & (X < 39) & (np.abs(Y) < 1.9)
     assert ahead.any() and g.valid[ahead].all() and not g.valid[(X > 42.2)].any()
+    assert not g.valid[np.abs(Y) > 2.2].any()  # nothing sideways
     assert not build_grid(traj, 0.1, 2.0).valid.shape[1] > 150  # without it: the trajectory's crop only
-    assert view_paths([View("front", "x.png", T)], 0.0) == []
+    assert view_paths(last, traj, 0.0) == []
 
 
 def test_height_mlp_matches_spec():

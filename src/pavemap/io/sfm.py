@@ -195,7 +195,7 @@ def _prepare_images(images: list[Path], work: Path) -> tuple[Path, list[str]]:
 
 
 def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, workdir: str | os.PathLike | None = None,
-              overlap: int = 10, num_threads: int = 2, max_features: int = 8192, min_registered: float = 0.6,
+              overlap: int = 10, num_threads: int = 1, max_features: int = 8192, min_registered: float = 0.6,
               seed: int = 0, peak_threshold: float = 0.003, verbose: bool = False, ego_mask: np.ndarray | None = None,
               refine_intrinsics: bool = False, min_parallax: float = 0.002, init_min_tri_angle: float = 2.0,
               checks: SfmChecks | None = None, dense_scale: bool = True) -> SfmResult:

@@ -19,6 +19,7 @@ PRESETS = ("nuscenes", "kitti")
 PosePer = Literal["frame", "view"]
 GroundMode = Literal["auto", "always", "off"]
 GroundUse = Literal["init", "depth", "both"]
+ReliefMethod = Literal["road", "bins"]
 
 
 @dataclass
@@ -99,11 +100,25 @@ class MeshConfig:
     ground_points_corners: int = 400  # corners per reference view (more: denser points, longer matching)
     # The run's self-check against the ground points: a median residual or a robust RMS beyond these (m)
     # makes the surface "not trustworthy"; a smaller observed fraction of the mesh's vertices is a warning.
+    # After training, fit the ground points' residuals to the surface in road coordinates and add them
+    # (pavemap.mesh.geometry.anchor_correction): training drifts a surface by a few cm where the photometric
+    # loss cannot tell heights apart.
+    anchor_to_points: bool = True
+    # Every n-th ground point is held out of the surface (initial relief, depth loss, anchoring) and checks it
+    # (0: check against the points the surface was fitted to, which cannot see a bias).
+    check_holdout_every: int = 8
     check_max_bias_m: float = 0.05
     check_max_rms_m: float = 0.10
     min_observed_fraction: float = 0.5
+    # A vertex's height counts as observed within this distance of a ground point or depth sample (the
+    # ``observed`` layer; pavemap.mesh.geometry.height_observed); a training pixel alone sees colour, not height.
+    observed_radius_m: float = 2.0
     # Start from the binned measured ground where depth exists (pavemap.mesh.init_surface.depth_relief).
     init_from_depth: bool = True
+    # How the measured points become the initial relief: "road", a regularised least-squares fit in road
+    # coordinates (pavemap.mesh.relief; initial-surface RMSE over observed vertices without depth 5.6 -> 2.5 cm
+    # nuScenes-like, 5.6 -> 1.7 cm kitti-like), or "bins", the per-bin medians with fills below.
+    init_relief: ReliefMethod = "road"
     init_cell_m: float = 1.0  # bin size of that initial surface (m)
     # Finer bins (m) holding the median of what the coarse bins miss, where >= 3 points fall: keeps curbs
     # sharp (0 turns it off).
@@ -155,12 +170,13 @@ class MeshConfig:
         for name in ("resolution", "crop_m", "render_scale", "eval_scale", "max_dist", "pixel_fraction",
                      "bake_fill_sigma", "pose_prior_deg", "pose_prior_m", "camera_height", "init_cell_m",
                      "depth_outlier_m", "lr_decay_final", "lr_height_decay_final", "camera_height_prior_sigma",
-                     "camera_height_warn_frac", "ground_points_scale", "check_max_bias_m", "check_max_rms_m"):
+                     "camera_height_warn_frac", "ground_points_scale", "check_max_bias_m", "check_max_rms_m",
+                     "observed_radius_m"):
             _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
-                     "pose_align_rounds", "seed", "init_fine_cell_m", "view_range_m", "moving_cutoff",
-                     "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height", "lr_pose", "lr_pose_rot", "w_rgb", "w_sem",
-                     "w_depth", "w_smooth"):
+                     "pose_align_rounds", "seed", "init_fine_cell_m", "check_holdout_every", "view_range_m",
+                     "moving_cutoff", "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height", "lr_pose", "lr_pose_rot",
+                     "w_rgb", "w_sem", "w_depth", "w_smooth"):
             _require(self, name, lambda v: v >= 0, "must be >= 0")
         for name in ("frame_stride", "pixels_per_step", "height_pixels_per_step", "hidden", "pose_bake_every",
                      "pose_align_pixels_per_view", "height_refresh_steps", "max_bad_steps", "ground_points_corners"):

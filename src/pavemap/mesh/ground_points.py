@@ -17,18 +17,15 @@ sparse depth, self-check) is :mod:`pavemap.mesh.geometry`.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
-from pavemap.geometry.grid import GridSpec
 from pavemap.geometry.triangulate import (
     HeightEstimate,
-    SurfaceCheck,
     agrees_with_neighbours,
     camera_height,
-    check_height_field,
     local_ground,
     parabola_vertex,
     plane_homography,
@@ -103,6 +100,20 @@ class GroundPoints:
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def subset(self, keep: np.ndarray) -> GroundPoints:
+        """The points where ``keep`` (N,) bool holds, with their observations (re-indexed)."""
+        new = np.cumsum(keep) - 1
+        obs = keep[self.obs_point] if len(self.obs_point) else np.zeros(0, bool)
+        return replace(
+            self, points=self.points[keep], n_views=self.n_views[keep], rms_px=self.rms_px[keep],
+            angle_deg=self.angle_deg[keep], road=self.road[keep], obs_point=new[self.obs_point[obs]],
+            obs_view=self.obs_view[obs], obs_uv=self.obs_uv[obs], obs_depth=self.obs_depth[obs])
+
+    def split(self, every: int) -> tuple[GroundPoints, GroundPoints]:
+        """(fit, check): every ``every``-th point held out as the self-check's unseen evidence."""
+        held = (np.arange(len(self)) % every) == every // 2
+        return self.subset(~held), self.subset(held)
 
 
 @dataclass
@@ -437,14 +448,3 @@ def estimate_camera_height(seq: Sequence, gp: GroundPoints, *, radius: float = 4
         out[name] = est
     return out
 
-
-def check_surface(gp: GroundPoints, grid: GridSpec, heights: np.ndarray, offset: float = 0.0,
-                  road_only: bool = False, **kw) -> SurfaceCheck:
-    """The run's self-check: a height raster (ny, nx) on ``grid`` (raised by ``offset`` metres) against the
-    triangulated ground points (those inside the raster). ``flagged`` when the surface is off; see
-    :func:`pavemap.geometry.triangulate.check_residuals` for the thresholds (``kw``)."""
-    if not gp.observable:
-        return SurfaceCheck(0, float("nan"), float("nan"), float("nan"), float("nan"), True,
-                            f"surface not checkable: {gp.reason}")
-    pts = gp.points[gp.road] if road_only else gp.points
-    return check_height_field(pts, grid, np.asarray(heights, np.float64) + offset, **kw)

@@ -46,7 +46,7 @@ def initial_heights(pool: PixelPool, grid: MeshGrid, traj: np.ndarray, cam_h: fl
         return z
     relief = depth_relief(np.concatenate(sources), grid, traj, ground_z, cfg.init_cell_m,
                           fine_cell=cfg.init_fine_cell_m, fill_sigmas=(1.0, 2.0, 4.0),
-                          along_sigma_m=cfg.init_along_fill_m)
+                          along_sigma_m=cfg.init_along_fill_m, method=cfg.init_relief)
     return z if relief is None else z + relief
 
 
@@ -173,9 +173,13 @@ def idw_ground(traj_xy: np.ndarray, ground_z: np.ndarray, xy: np.ndarray, k: int
 
 def depth_relief(pts: np.ndarray, grid: MeshGrid, traj: np.ndarray, ground_z: np.ndarray, cell: float,
                  gate: float = 0.5, fine_cell: float = 0.0, fine_min: int = 3,
-                 fill_sigmas: tuple[float, ...] = (1.0,), along_sigma_m: float = 0.0) -> np.ndarray | None:
+                 fill_sigmas: tuple[float, ...] = (1.0,), along_sigma_m: float = 0.0,
+                 method: str = "bins") -> np.ndarray | None:
     """(Nv,) float32 relief of measured ground points ``pts`` (N, 3) relative to the trajectory plane (the
     ground ``ground_z`` (F,) under ``traj`` (F, 3)), at the kept vertices; None with fewer than 100 usable.
+
+    ``method`` "road": the regularised fit in road coordinates of :mod:`pavemap.mesh.relief` (a standing
+    vehicle, whose trajectory has no "along", and an oversized lattice fall back to the bins below).
 
     The points within ``gate`` m of the trajectory plane (not facades, poles) are averaged per ``cell`` m
     bin (:func:`_coarse_bins`) and sampled bilinearly at the vertices; with ``fine_cell`` the median
@@ -185,6 +189,15 @@ def depth_relief(pts: np.ndarray, grid: MeshGrid, traj: np.ndarray, ground_z: np
     """
     g = grid.spec
     r = pts[:, 2] - idw_ground(traj[:, :2], ground_z, pts[:, :2])
+    moving = len(traj) >= 2 and np.linalg.norm(np.diff(traj[:, :2], axis=0), axis=1).sum() > 2 * cell
+    if method == "road" and moving:
+        from pavemap.mesh.relief import fit_relief
+
+        s_p, t_p = along_track(traj[:, :2], pts[:, :2])
+        s_v, t_v = along_track(traj[:, :2], grid.vertex_xy())
+        relief = fit_relief(s_p, t_p, r, s_v, t_v)
+        if relief is not None:
+            return relief.astype(np.float32)
     px, py = pts[:, 0] - g.x0, pts[:, 1] - g.y0  # offsets from the grid origin
     val = _coarse_bins(px, py, r, grid, cell, gate, fill_sigmas)
     if val is None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -69,8 +70,9 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) ->
     for fi, v in train_views + held_views:
         centres.setdefault(fi, []).append(v.T_world_cam[:3, 3])
     traj = np.array([np.mean(centres[k], axis=0) for k in sorted(centres)])
-    ends = [v for fi, v in train_views + held_views if fi in (min(centres), max(centres))]
-    grid = build_grid(traj[:, :2], cfg.resolution, cfg.crop_m, view_paths(ends, cfg.view_range_m))
+    first, last = min(centres), max(centres)
+    ends = [(0 if fi == first else -1, v) for fi, v in train_views + held_views if fi in (first, last)]
+    grid = build_grid(traj[:, :2], cfg.resolution, cfg.crop_m, view_paths(ends, traj[:, :2], cfg.view_range_m))
     if grid.vertices < 3 or grid.faces == 0:
         raise PavemapError("the trajectory crop holds no triangle; check crop_m and resolution")
 
@@ -82,15 +84,39 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) ->
     return TrainData(pool, epool, grid, traj, classes, use_sem, use_depth, bool(held_views))
 
 
-def view_paths(views: list, range_m: float) -> list[np.ndarray]:
-    """(2, 2) segments from each view's camera centre ``range_m`` along its horizontal view direction (views
-    looking steeply up or down give none): where the end frames see road beyond the trajectory."""
-    out = []
-    for v in views if range_m > 0 else []:
+def _travel(traj_xy: np.ndarray, end: int, span_m: float = 5.0) -> np.ndarray | None:
+    """(2,) unit direction of travel over the last (end=-1) or first (end=0) ``span_m`` of the path, pointing
+    out of the path (forward at its end, backward at its start); None for a path shorter than 0.5 m."""
+    t = traj_xy if end == -1 else traj_xy[::-1]
+    step = np.linalg.norm(np.diff(t, axis=0), axis=1)
+    back = np.cumsum(step[::-1])
+    k = int(np.searchsorted(back, span_m))  # segments covering the last span_m
+    d = t[-1] - t[max(len(t) - 2 - k, 0)]
+    n = float(np.hypot(*d))
+    return d / n if n > 0.5 else None
+
+
+def view_paths(views: list[tuple[int, object]], traj_xy: np.ndarray, range_m: float) -> list[np.ndarray]:
+    """(2, 2) segments from camera centres ``range_m`` along their horizontal view direction: the road the end
+    frames see beyond the trajectory. views: (frame position 0 or -1 in the path, View) of the first and last
+    frames. Only cameras looking out of the path's end (within 30 degrees of the direction of travel there,
+    and within 60 degrees of horizontal) add one: a surround rig's side cameras (nuScenes' front-left and
+    front-right look 55 degrees off the axis) see the road beside the path, which the crop already holds,
+    and their axes would pull the mesh into the buildings."""
+    out: list[np.ndarray] = []
+    if range_m <= 0:
+        return out
+    traj_xy = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    for end, v in views:
         c, axis = v.T_world_cam[:3, 3], v.T_world_cam[:3, 2]  # optical axis: camera +z (x right, y down)
-        h = np.hypot(axis[0], axis[1])
-        if h > 0.5:  # within 60 degrees of horizontal
-            out.append(np.array([c[:2], c[:2] + range_m * axis[:2] / h]))
+        h = float(np.hypot(axis[0], axis[1]))
+        if h <= 0.5:
+            continue
+        a = axis[:2] / h
+        out_dir = _travel(traj_xy, end) if len(traj_xy) > 1 else None
+        if out_dir is not None and float(a @ out_dir) < math.cos(math.radians(30.0)):
+            continue
+        out.append(np.array([c[:2], c[:2] + range_m * a]))
     return out
 
 

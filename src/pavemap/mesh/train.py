@@ -29,7 +29,15 @@ from pavemap.mesh.bake import bake_into
 from pavemap.mesh.checkpoint import CHECKPOINT, Resumed, resume, save_checkpoint
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.evaluate import evaluate_pool, psnr, stage_metrics
-from pavemap.mesh.geometry import Geometry, add_point_depth, find_geometry, point_vertices, self_check
+from pavemap.mesh.geometry import (
+    Geometry,
+    add_point_depth,
+    anchor_correction,
+    find_geometry,
+    height_observed,
+    point_vertices,
+    self_check,
+)
 from pavemap.mesh.init_surface import initial_heights
 from pavemap.mesh.model import RoadMesh, RoadMeshModel, to_road_mesh
 from pavemap.mesh.pose import PoseCorrections, align_poses, corrected_poses, rig_corrections, rig_groups
@@ -135,6 +143,8 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
             ) -> tuple[RoadMesh, dict]:
     """The final bake, the mesh, and the run's metrics."""
     cfg, data = fit.cfg, run.data
+    if cfg.anchor_to_points:
+        _anchor(fit, run)
     seen = None
     if cfg.bake_final:
         seen = bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
@@ -156,19 +166,34 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     return mesh, metrics
 
 
+@torch.no_grad()
+def _anchor(fit: Fit, run: _Run) -> None:
+    """Move the trained surface back onto the ground points (:func:`pavemap.mesh.geometry.anchor_correction`)."""
+    m = fit.model
+    h = m.dense_heights(float("nan")).cpu().numpy()
+    corr = anchor_correction(run.geo.gp, run.data.grid.spec, h, run.data.grid.vertex_xy(), run.data.traj[:, :2])
+    if corr is not None:
+        m.z_base.add_(torch.as_tensor(corr, dtype=m.z_base.dtype, device=m.z_base.device))
+
+
 def _observed(fit: Fit, run: _Run, seen: torch.Tensor | None) -> torch.Tensor:
-    """(ny, nx) bool: the vertices some training pixel (``seen`` (Nv,), from the final bake) or ground point
-    reaches; without a final bake, a bake's support on the final surface."""
+    """(ny, nx) bool: the vertices whose height was measured (:func:`pavemap.mesh.geometry.height_observed`:
+    a ground point or depth sample within ``mesh.observed_radius_m``) and that a training pixel reaches
+    (``seen`` (Nv,), from the final bake; without a final bake, a bake's support on the final surface)."""
+    from pavemap.mesh.init_surface import depth_points
+
+    m = fit.model
     if seen is None:
         from pavemap.mesh.bake import bake_colours
 
-        m = fit.model
         _, support, _ = bake_colours(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), fit.cfg.max_dist,
                                      fit.cfg.bake_fill_sigma)
         seen = support.reshape(-1)[m.vertex_flat_ids] > 0
-    obs = fit.model.dense(seen.to(torch.bool), fill=False).cpu().numpy()
-    obs |= point_vertices(run.geo.gp, run.data.grid.spec)
-    return torch.from_numpy(obs & run.data.grid.valid)
+    pix = m.dense(seen.to(torch.bool), fill=False).cpu().numpy()
+    sensed = depth_points(fit.pool, n_max=200000, seed=fit.cfg.seed) if fit.pool.depth is not None else None
+    spec = run.data.grid.spec
+    measured = height_observed(spec, fit.cfg.observed_radius_m, run.geo.gp, run.geo.check_gp, sensed)
+    return torch.from_numpy((pix | point_vertices(run.geo.gp, spec)) & measured & run.data.grid.valid)
 
 
 def _make_fit(run: _Run, cfg: MeshConfig, z_vertices: np.ndarray, seq_name: str, warn: Warn) -> Fit:
