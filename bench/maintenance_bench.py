@@ -98,11 +98,12 @@ def truth_surface(seq_root: Path, surface):  # noqa: ANN001, ANN201
 
 
 def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str) -> tuple:
-    """pavemap.run, then fusion again in memory (label image) and the measures on the mesh and on the truth."""
+    """pavemap.run, then fusion again in memory (label image) and the maintenance stage the pipeline runs
+    (:func:`pavemap.maintain.assess`: surface and sample measures, footprint sizes) on the mesh, and the same
+    on the true surface without samples (the measuring method alone)."""
     import pavemap
     from pavemap.io.sequence import DETECTIONS_FILE, read_detections, read_sequence
-    from pavemap.maintain.chainage import route_polyline
-    from pavemap.maintain.measure import measure_instances
+    from pavemap.maintain import assess
     from pavemap.mesh import load_mesh
     from pavemap.mesh.geometry import mark_observed
     from pavemap.pipeline import filter_and_fuse
@@ -117,17 +118,17 @@ def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str) -> t
     dets = read_detections(run_dir / DETECTIONS_FILE)
     res = filter_and_fuse(seq, dets, mesh.surface, cfg.filter, cfg.fusion, mesh=mesh, progress=False)
     mark_observed(res.instances, mesh)
-    route = route_polyline(seq.trajectory())
     on_truth = copy.deepcopy(res.instances)
     t = time.perf_counter()
-    measure_instances(res.instances, mesh.surface, res.instance_labels, mesh.observed, route)
+    assess(res.instances, seq, mesh.surface, res.instance_labels, mesh.observed, samples=mesh.samples)
     measure_s = time.perf_counter() - t
-    measure_instances(on_truth, truth_surface(seq_dir, mesh.surface), res.instance_labels, None, route)
+    assess(on_truth, seq, truth_surface(seq_dir, mesh.surface),
+           res.instance_labels, None, samples=np.zeros((0, 3)))
     # Diagnostic: the same mesh and detections fused with fusion.association = footprint (each detection
     # on the vertices under its whole box, not a 0.3 m disk around the box centre's hit)
     fc = dataclasses.replace(cfg.fusion, association="footprint")
     alt = filter_and_fuse(seq, dets, mesh.surface, cfg.filter, fc, mesh=mesh, progress=False)
-    measure_instances(alt.instances, mesh.surface, alt.instance_labels, mesh.observed, route)
+    assess(alt.instances, seq, mesh.surface, alt.instance_labels, mesh.observed, samples=mesh.samples)
     return res.instances, on_truth, alt.instances, {"run": round(run_s, 1), "measure": round(measure_s, 3)}
 
 

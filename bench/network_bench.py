@@ -5,8 +5,10 @@ Drives: one synthetic kitti-like world (24 frames at 4 Hz, half-resolution image
 three networks. Config: the test's light one (tests/test_network.py). Each (network, mode) runs in a fresh
 process into a fresh network folder, so nothing is reused and each peak RSS is its own.
 
-Reported per network: wall seconds of the batch (serial: the drives one by one in one process, one torch
-thread, the same task function; dask: including the cluster's start), speedup, peak RSS per worker
+Reported per network: wall seconds of the batch (serial: the drives one by one in one process, the same
+task function with every thread pool at one thread, as on a worker; serial-all-threads: the same with the
+process's default threads, what one drive after another on both cores gives; dask: including the
+cluster's start), speedup (serial / dask, and serial-all-threads / dask), peak RSS per worker
 process (MiB, from the tasks' ``getrusage``), register build time, and the machine's load (``uptime``)
 before and after, since the 2 cores are shared.
 
@@ -52,8 +54,9 @@ def _one(mode: str, manifest: Path, net: Path) -> dict:
     from pavemap.network.batch import run_batch
 
     t = time.perf_counter()
-    s = run_batch(manifest, net, scheduler="serial" if mode == "serial" else None,
-                  workers=None if mode == "serial" else 2, echo=lambda _: None)
+    serial = mode.startswith("serial")
+    s = run_batch(manifest, net, scheduler="serial" if serial else None, workers=None if serial else 2,
+                  echo=lambda _: None, threads=0 if mode == "serial-all-threads" else 1)
     wall = time.perf_counter() - t
     peak: dict[str, float] = {}
     for e in s["drives"]:
@@ -90,7 +93,7 @@ def main() -> None:
         manifest = a.data / f"manifest-{n}.yaml"
         manifest.write_text(json.dumps({"config": "kitti", "set": OVERRIDES, "drives": drives[:n]}))  # JSON is YAML
         row: dict = {"drives": n, "load_before": _load()}
-        for mode in ("serial", "dask-2-workers"):
+        for mode in ("serial", "dask-2-workers", "serial-all-threads"):
             net = a.data / f"net-{n}-{mode}"
             shutil.rmtree(net, ignore_errors=True)  # the bench's own folder: every drive is run afresh
             p = subprocess.run([sys.executable, __file__, "--one", mode, str(manifest), str(net)],
@@ -100,6 +103,7 @@ def main() -> None:
             row[mode] = json.loads(p.stdout.strip().splitlines()[-1])
             print(n, mode, row[mode], flush=True)
         row["speedup"] = round(row["serial"]["wall_s"] / row["dask-2-workers"]["wall_s"], 2)
+        row["speedup_vs_all_threads"] = round(row["serial-all-threads"]["wall_s"] / row["dask-2-workers"]["wall_s"], 2)
         row["load_after"] = _load()
         rows.append(row)
     write_results(a.results, {**machine_entry(), "commit": commit, "target_speedup": 1.7, "networks": rows,

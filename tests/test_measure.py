@@ -207,3 +207,56 @@ def test_truth_volume_is_the_integral_of_the_height_dent(tmp_path):
         assert p["depth_max_m"] == pytest.approx(dent.max(), abs=2e-4)
         assert p["depth_m"] - 0.0005 <= p["depth_max_m"] <= p["depth_m"] + 0.0065
         assert 0.2 * p["depth_m"] < p["depth_mean_m"] < p["depth_m"]
+
+
+def test_pothole_depth_from_height_samples_where_the_surface_is_smooth():
+    """The mesh lost the dent (its relief lattice is coarser than a pothole), the samples inside it did not."""
+    z, X, Y = _road()
+    cx, cy, R, D = 4.0, 2.0, 0.5, 0.06
+    rng = np.random.default_rng(3)
+    xy = np.column_stack([rng.uniform(cx - R, cx + R, 400), rng.uniform(cy - R, cy + R, 400)])
+    road = 10.0 + 0.02 * xy[:, 0] + 0.015 * xy[:, 1] - 0.05 * ((xy[:, 1] - 3.0) / 3.5) ** 2
+    dent = _bowl(xy[:, 0], xy[:, 1], cx, cy, R, D)
+    samples = np.column_stack([xy, road - dent + rng.normal(0, 0.002, len(xy))])
+    flat, with_samples, too_few = _inst(1, 3), _inst(1, 3), _inst(1, 3)
+    lab = _labels_disk(X, Y, cx, cy, R)
+    measure_instances([flat], _surface(z), lab)
+    measure_instances([with_samples], _surface(z), lab, samples=samples)
+    measure_instances([too_few], _surface(z), lab, samples=samples[np.hypot(*(xy - [cx, cy]).T) < R][:3])
+    assert flat.extra["depth_max_mm"] < 3.0  # the smooth surface alone sees no pothole
+    e = with_samples.extra
+    assert e["measure_note"].startswith("from ") and abs(e["depth_max_mm"] - D * 1000) <= 6.0, e
+    vol_l = math.pi * R * R * D / 2 * 1000
+    assert abs(e["volume_l"] - vol_l) <= 0.25 * vol_l, (e, vol_l)
+    assert too_few.extra["measure_note"] == "" and too_few.extra["depth_max_mm"] < 3.0  # 3 samples: the surface
+
+
+def test_footprint_sizes_become_the_defect_sizes():
+    """area_m2 of a pothole / patch and crack_length_m of a crack come from the detections' footprints; the
+    fused vertices' area stays as mapped_area_m2."""
+    from pavemap.fuse.footprint import FILL, footprint_quads, instance_sizes, shoelace
+    from pavemap.maintain import adopt_footprint_sizes
+
+    # a camera 1.5 m above the ground looking along +x (OpenCV axes: x right, y down, z forward)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+    T[2, 3] = 1.5
+    K = torch.tensor([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    # the box of a 1 m x 0.5 m patch 6-7 m ahead: rows where the ground is 6 and 7 m away, columns +-0.25 m
+    v6, v7 = 240 + 500 * 1.5 / 6, 240 + 500 * 1.5 / 7
+    box = torch.tensor([[320 - 500 * 0.25 / 7, v7, 320 + 500 * 0.25 / 7, v6]], dtype=torch.float64)
+    q, ok = footprint_quads(box, K[None], T[None], torch.zeros(1, dtype=torch.float64))
+    assert bool(ok[0]) and abs(float(shoelace(q).abs()[0]) - 0.5 * (0.5 * 6 / 7 + 0.5) / 1.0) < 0.01
+    pot, crack = _inst(1, 3), _inst(2, 0)
+    inst_of = np.array([1, 1, 1, 2, 2])
+    area = np.array([0.5, 0.52, 0.9, 0.1, 0.1])  # one far, inflated view
+    length = np.array([1.0, 1.0, 1.5, 2.4, 2.6])
+    gpx = np.array([0.01, 0.01, 0.2, 0.02, 0.02])
+    instance_sizes([pot, crack], inst_of, area, length, gpx)
+    adopt_footprint_sizes([pot, crack])
+    assert pot.area_m2 == pytest.approx(0.5 * FILL[3], rel=0.05) and pot.extra["mapped_area_m2"] == 1.0
+    assert pot.extra["size_views"] == 3 and crack.extra["crack_length_m"] in (2.4, 2.6)
+    none = _inst(3, 2)
+    instance_sizes([none], np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0))
+    adopt_footprint_sizes([none])
+    assert none.area_m2 == 1.0 and none.extra["size_views"] == 0  # no footprint: the vertex area stays

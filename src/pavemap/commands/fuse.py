@@ -105,7 +105,8 @@ def register(app: typer.Typer) -> None:
             mc = rc.maintenance  # the same defect schema as `pavemap run` (issue 16)
             result.segments = assess(result.instances, s, surf, result.instance_labels,
                                      getattr(m, "observed", None) if surface.value in ("mesh", "auto") else None,
-                                     policy=mc.policy, segment_m=mc.segment_m, lane_width_m=mc.lane_width_m)
+                                     policy=mc.policy, segment_m=mc.segment_m, lane_width_m=mc.lane_width_m,
+                                     samples=getattr(m, "samples", None) if surface.value in ("mesh", "auto") else None)
             result.metrics["maintenance"] = summary(result.instances, result.segments)
             ev = None
             if truth and (seq / "truth" / "defects.geojson").is_file():

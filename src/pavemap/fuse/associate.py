@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from pavemap.fuse.config import FusionConfig
+from pavemap.fuse.footprint import footprint_quads, shoelace
 from pavemap.geometry.camera import pixel_rays
 from pavemap.types import Detection, Sequence
 
@@ -202,19 +203,12 @@ def footprint_centres(hf, boxes: torch.Tensor, K: torch.Tensor, T: torch.Tensor,
     arithmetic, mean depth of its near and far edges. Boxes with a corner above the horizon, or
     without a centre hit, keep the centre hit.
     """
-    x1, y1, x2, y2 = boxes.unbind(1)
-    uv = torch.stack([torch.stack([x1, y1], 1), torch.stack([x2, y1], 1), torch.stack([x2, y2], 1),
-                      torch.stack([x1, y2], 1)], 1)  # (N, 4, 2) in ring order
-    n = boxes.shape[0]
-    o, d = pixel_rays(K.repeat_interleave(4, 0), T.repeat_interleave(4, 0), uv.reshape(-1, 2))
-    o, d = o.reshape(n, 4, 3), d.reshape(n, 4, 3)
-    lam = (pts[:, None, 2] - o[..., 2]) / d[..., 2].clamp(max=-1e-12)
-    ok = hit & (d[..., 2] < -1e-12).all(1) & (lam > 0).all(1)
-    q = o[..., :2] + lam[..., None] * d[..., :2]  # (N, 4, 2)
+    q, ok = footprint_quads(boxes, K, T, pts[:, 2])
+    ok = ok & hit
     qx, qy = q[..., 0], q[..., 1]
     nx_, ny_ = qx.roll(-1, 1), qy.roll(-1, 1)
     cross = qx * ny_ - nx_ * qy
-    area = cross.sum(1) / 2
+    area = shoelace(q)
     ok = ok & (area.abs() > 1e-12)
     safe = torch.where(ok, area, torch.ones_like(area))
     cx = ((qx + nx_) * cross).sum(1) / (6 * safe)

@@ -56,17 +56,23 @@ class MeasureConfig:
     # 2: plane plus quadratic terms, so a road crown (curvature ~0.01 /m) under a 1 m ring does not read
     # as 1-2 mm of depth; the ring surrounds the dent, so the fit interpolates rather than extrapolates
     order: int = 2
+    # Height samples (depth pixels, ground points) inside the footprint measure the floor itself where there
+    # are at least this many: the surface is smoother than a pothole (its relief lattice is 0.5 m along the road)
+    min_samples: int = 5
+    sample_quantile: float = 0.95  # the deepest sample is noise-prone: depth_max is this quantile of them
 
 
 def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarray | None,  # noqa: ANN001
                       observed=None, route: np.ndarray | None = None,  # noqa: ANN001
-                      config: MeasureConfig | None = None) -> None:
+                      config: MeasureConfig | None = None, samples: np.ndarray | None = None) -> None:
     """Write the surface measures of every instance into ``inst.extra`` (in place).
 
     surface: HeightField-like (``heights`` (ny, nx) and ``valid`` (ny, nx) bool torch or numpy, ``x0``,
     ``y0``, ``res``); labels (ny, nx) int instance id per vertex (0 none), e.g.
     ``FusionResult.instance_labels``; observed (ny, nx) bool or None (all observed); route (M, 2) from
-    :func:`pavemap.maintain.chainage.route_polyline` or None (then no orientation).
+    :func:`pavemap.maintain.chainage.route_polyline` or None (then no orientation); samples (N, 3) world
+    height measurements (depth pixels, ground points) or None: where enough fall inside a pothole they
+    give its depth instead of the (smoother) surface.
     Potholes get depth_max_mm, depth_mean_mm, volume_l, depth_sigma_mm, measurable, measure_note;
     cracks crack_length_m, orientation_deg, orientation_ok.
     """
@@ -84,7 +90,7 @@ def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarr
     for inst in instances:
         sl = slices[inst.id - 1] if 0 < inst.id <= len(slices) else None
         if inst.cls == POTHOLE:
-            inst.extra.update(_pothole(inst.id, sl, z, valid, obs, lab, grid, cfg))
+            inst.extra.update(_pothole(inst.id, sl, z, valid, obs, lab, grid, cfg, samples))
         elif inst.cls in CRACK_CLASSES:
             inst.extra.update(_crack(inst, sl, lab, grid, route))
 
@@ -144,7 +150,8 @@ def robust_plane(x: np.ndarray, y: np.ndarray, z: np.ndarray, trim_k: float = 2.
 
 
 def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: np.ndarray | None,
-             lab: np.ndarray | None, grid: tuple[float, float, float], cfg: MeasureConfig) -> dict:
+             lab: np.ndarray | None, grid: tuple[float, float, float], cfg: MeasureConfig,
+             samples: np.ndarray | None = None) -> dict:
     """The pothole measures of instance ``iid`` (see module doc)."""
     if sl is None or lab is None:
         return _not_measurable("no footprint on the surface grid")
@@ -183,8 +190,18 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
     if n_in < cfg.min_ring_vertices:
         return _not_measurable(f"too few ring vertices agree on a plane ({n_in})")
     fj, fi = np.nonzero(fv)
-    d = surface_at(coef, (fi - ci) * res, (fj - cj) * res) - zc[fj, fi]  # + below the plane
     floor = max(2.0 * sigma, cfg.noise_floor_m)
+    if samples is not None and len(samples):
+        # the samples inside the footprint: grid cells (j0 + row, i0 + col) of the crop
+        si = np.rint((samples[:, 0] - grid[0]) / res).astype(np.int64) - i0
+        sj = np.rint((samples[:, 1] - grid[1]) / res).astype(np.int64) - j0
+        inb = (si >= 0) & (sj >= 0) & (si < fv.shape[1]) & (sj < fv.shape[0])
+        inside = np.zeros(len(samples), bool)
+        inside[inb] = fv[sj[inb], si[inb]]
+        if inside.sum() >= cfg.min_samples:
+            return _pothole_from_samples(samples[inside], (grid[0] + (i0 + ci) * res, grid[1] + (j0 + cj) * res),
+                                         coef, sigma, n_in, int(fv.sum()) * res * res, cfg)
+    d = surface_at(coef, (fi - ci) * res, (fj - cj) * res) - zc[fj, fi]  # + below the plane
     dent = d > floor
     # plane offset error at the centre ~ sigma * sqrt(p / n) (p parameters), plus one vertex's own noise;
     # a footprint partly unobserved widens it (fewer views fixed those heights)
@@ -194,6 +211,25 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
         "depth_max_mm": round(max(float(d.max()), 0.0) * 1000.0, 1),
         "depth_mean_mm": round(float(d[dent].mean()) * 1000.0, 1) if dent.any() else 0.0,
         "volume_l": round(float(d[dent].sum()) * res * res * 1000.0, 3),
+        "depth_sigma_mm": round(sig * 1000.0, 1),
+    }
+
+
+def _pothole_from_samples(pts: np.ndarray, centre: tuple[float, float], coef: np.ndarray, sigma: float, n_ring: int,
+                          foot_area: float, cfg: MeasureConfig) -> dict:
+    """Pothole measures from height samples pts (n, 3) inside its footprint, below the ring plane ``coef``
+    (about ``centre``): depth_max the ``sample_quantile`` of their depths, depth_mean over those below the
+    noise floor, volume their mean depth (negative as 0) over the footprint area ``foot_area`` m²."""
+    d = surface_at(coef, pts[:, 0] - centre[0], pts[:, 1] - centre[1]) - pts[:, 2]
+    floor = max(2.0 * sigma, cfg.noise_floor_m)
+    dent = d > floor
+    spread = 1.4826 * float(np.median(np.abs(d - np.median(d)))) if len(d) > 1 else 0.0
+    sig = math.sqrt(sigma * sigma * (1.0 + len(coef) / n_ring) + spread * spread / len(d))
+    return {
+        "measurable": True, "measure_note": f"from {len(d)} height samples inside it",
+        "depth_max_mm": round(max(float(np.quantile(d, cfg.sample_quantile)), 0.0) * 1000.0, 1),
+        "depth_mean_mm": round(float(d[dent].mean()) * 1000.0, 1) if dent.any() else 0.0,
+        "volume_l": round(float(np.clip(d, 0.0, None).mean()) * foot_area * 1000.0, 3),
         "depth_sigma_mm": round(sig * 1000.0, 1),
     }
 

@@ -185,8 +185,9 @@ def to_road_mesh(model: RoadMeshModel, class_ids: list[int], has_semantics: bool
 class RoadMesh:
     """The stage-1 result. surface: heights from the trained MLP, valid = crop; rgb (ny, nx, 3) in [0, 1];
     sem_logits (ny, nx, C); class_ids maps channel -> the sequence's class id; observed (ny, nx) bool the
-    vertices some training pixel or triangulated ground point reaches (None: unknown, e.g. an old mesh file):
-    elsewhere the heights are a guess."""
+    vertices whose height was measured (None: unknown, e.g. an old mesh file): elsewhere the heights are a
+    guess; samples (N, 3) float32 the height measurements themselves (triangulated ground points, a subsample
+    of the depth pixels), or None: finer than the surface, they measure what it smooths (a pothole's floor)."""
 
     surface: HeightField
     rgb: torch.Tensor
@@ -194,6 +195,7 @@ class RoadMesh:
     class_ids: list[int]
     has_semantics: bool = True
     observed: torch.Tensor | None = None
+    samples: np.ndarray | None = None
 
     def labels(self) -> torch.Tensor:
         """(ny, nx) long class id of the argmax channel; -1 off the crop or without semantics."""

@@ -123,7 +123,8 @@ def save_mesh(out: Path, mesh: RoadMesh) -> None:
             valid=valid, rgb=mesh.rgb.reshape(-1, 3).cpu().numpy()[flat].astype(np.float32),
             sem_logits=mesh.sem_logits.reshape(flat.size, C).cpu().numpy()[flat].astype(np.float32),
             class_ids=np.asarray(mesh.class_ids, dtype=np.int64), has_semantics=mesh.has_semantics,
-            **({} if mesh.observed is None else {"observed": mesh.observed.cpu().numpy().astype(bool)}))
+            **({} if mesh.observed is None else {"observed": mesh.observed.cpu().numpy().astype(bool)}),
+            **({} if mesh.samples is None else {"samples": np.asarray(mesh.samples, np.float32).reshape(-1, 3)}))
 
 
 def load_mesh(out_dir: Path) -> RoadMesh:
@@ -144,8 +145,9 @@ def load_mesh(out_dir: Path) -> RoadMesh:
         surf = HeightField(float(z["x0"]), float(z["y0"]), float(z["res"]),
                            torch.from_numpy(z["heights"].astype(np.float32)), torch.from_numpy(valid))
         observed = torch.from_numpy(z["observed"].astype(bool)) if "observed" in z.files else None
+        samples = z["samples"].astype(np.float32).reshape(-1, 3) if "samples" in z.files else None
         return RoadMesh(surf, torch.from_numpy(rgb.reshape(ny, nx, 3)), torch.from_numpy(sem.reshape(ny, nx, C)),
-                        [int(c) for c in z["class_ids"]], bool(z["has_semantics"]), observed)
+                        [int(c) for c in z["class_ids"]], bool(z["has_semantics"]), observed, samples)
     except (KeyError, ValueError, OSError) as e:
         raise PavemapError(f"{f}: not a pavemap mesh file ({e})") from None
 

@@ -80,6 +80,7 @@ class _Run:
     done: Resumed = dataclasses.field(default_factory=lambda: Resumed(0, [], 0.0))
     align_log: list[dict] = dataclasses.field(default_factory=list)
     moving_share: float = 0.0  # training pixels left out as moving objects (_drop_moving)
+    samples: np.ndarray | None = None  # (N, 3) the height measurements (_samples)
 
     def warn(self, msg: str) -> None:
         self.notes.append(msg)
@@ -153,6 +154,8 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     metrics = {**stage_metrics(fit, data, mesh, run.fill, _eval_delta(fit, data), seen, seq.root),
                "device": str(run.device), "epochs": cfg.epochs, **schedule, "camera_height_init": run.cam_h,
                "moving_pixel_share": round(run.moving_share, 5)}
+    run.samples = _samples(fit, run)
+    mesh.samples = run.samples
     mesh.observed = _observed(fit, run, seen)
     s = mesh.surface
     metrics["geometry"] = self_check(run.geo, data.grid.spec, s.heights.detach().cpu().numpy(),
@@ -180,8 +183,6 @@ def _observed(fit: Fit, run: _Run, seen: torch.Tensor | None) -> torch.Tensor:
     """(ny, nx) bool: the vertices whose height was measured (:func:`pavemap.mesh.geometry.height_observed`:
     a ground point or depth sample within ``mesh.observed_radius_m``) and that a training pixel reaches
     (``seen`` (Nv,), from the final bake; without a final bake, a bake's support on the final surface)."""
-    from pavemap.mesh.init_surface import depth_points
-
     m = fit.model
     if seen is None:
         from pavemap.mesh.bake import bake_colours
@@ -190,10 +191,22 @@ def _observed(fit: Fit, run: _Run, seen: torch.Tensor | None) -> torch.Tensor:
                                      fit.cfg.bake_fill_sigma)
         seen = support.reshape(-1)[m.vertex_flat_ids] > 0
     pix = m.dense(seen.to(torch.bool), fill=False).cpu().numpy()
-    sensed = depth_points(fit.pool, n_max=200000, seed=fit.cfg.seed) if fit.pool.depth is not None else None
     spec = run.data.grid.spec
-    measured = height_observed(spec, fit.cfg.observed_radius_m, run.geo.gp, run.geo.check_gp, sensed)
+    measured = height_observed(spec, fit.cfg.observed_radius_m, run.samples)
     return torch.from_numpy((pix | point_vertices(run.geo.gp, spec)) & measured & run.data.grid.valid)
+
+
+def _samples(fit: Fit, run: _Run) -> np.ndarray | None:
+    """(N, 3) float32 the run's height measurements: every ground point (fit and held out) and up to 200,000
+    depth pixels cast on their poses (:attr:`pavemap.mesh.model.RoadMesh.samples`); None without any."""
+    from pavemap.mesh.init_surface import depth_points
+
+    parts = [g.points for g in (run.geo.gp, run.geo.check_gp) if g is not None and len(g)]
+    sensed = None
+    if run.geo.source == "depth" and fit.pool.depth is not None:  # measured depth (not the points cast into it)
+        sensed = depth_points(fit.pool, n_max=200000, seed=fit.cfg.seed)
+    parts += [sensed] if sensed is not None else []
+    return np.concatenate(parts).astype(np.float32) if parts else None
 
 
 def _make_fit(run: _Run, cfg: MeshConfig, z_vertices: np.ndarray, seq_name: str, warn: Warn) -> Fit:

@@ -52,18 +52,39 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+@contextlib.contextmanager
+def thread_limit(n: int) -> Iterator[None]:
+    """Every thread pool of this process (torch, OpenCV, the BLAS and OpenMP pools numpy / scipy load) at
+    ``n`` threads, restored afterwards (``n`` <= 0: left as they are). A task is one core's work: two workers
+    on two cores whose tasks each spawn a thread per core would fight over them."""
+    if n <= 0:
+        yield
+        return
+    import cv2
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    before = (torch.get_num_threads(), cv2.getNumThreads())
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+    try:
+        with threadpool_limits(limits=n):
+            yield
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+
+
 def run_drive(task: dict) -> dict:
-    """One drive end to end on a worker: ``task`` = {name, seq, out, config (plain dict)}; returns
+    """One drive end to end on a worker: ``task`` = {name, seq, out, config (plain dict), threads}; returns
     {name, run, defects, seconds, peak_rss_mb, pid, host}. Pure: the same task gives the same run folder."""
     import socket
 
-    import torch
-
     import pavemap
 
-    torch.set_num_threads(int(task.get("threads", 1)))  # one core per worker process: threads would fight
     t = time.perf_counter()
-    result = pavemap.run(task["seq"], config_from_dict(task["config"]), task["out"], progress=False)
+    with thread_limit(int(task.get("threads", 1))):
+        result = pavemap.run(task["seq"], config_from_dict(task["config"]), task["out"], progress=False)
     return {"name": task["name"], "run": task["out"], "defects": len(result.defects),
             "seconds": round(time.perf_counter() - t, 3), "peak_rss_mb": round(peak_rss_mb(), 1),
             "pid": os.getpid(), "host": socket.gethostname()}
@@ -181,17 +202,11 @@ def _submit_all(client: object, tasks: list[dict], task_fn: Callable[[dict], dic
 
 def _run_serial(tasks: list[dict], task_fn: Callable[[dict], dict],
                 on_done: Callable[[dict, dict | None, str | None], None]) -> None:
-    import torch
-
-    threads = torch.get_num_threads()
-    try:
-        for t in tasks:
-            try:
-                on_done(t, task_fn(t), None)
-            except Exception as e:  # noqa: BLE001 - as on the cluster: report, go on
-                on_done(t, None, f"{type(e).__name__}: {e}")
-    finally:
-        torch.set_num_threads(threads)
+    for t in tasks:  # run_drive limits and restores the thread pools itself
+        try:
+            on_done(t, task_fn(t), None)
+        except Exception as e:  # noqa: BLE001 - as on the cluster: report, go on
+            on_done(t, None, f"{type(e).__name__}: {e}")
 
 
 # ---------------------------------------------------------------------------- the driver
@@ -211,7 +226,8 @@ def read_network(net: str | os.PathLike) -> dict:
     return d
 
 
-def _plan(manifest: Manifest, net: Path, previous: dict[str, dict]) -> tuple[list[dict], list[dict]]:
+def _plan(manifest: Manifest, net: Path, previous: dict[str, dict], threads: int = 1
+          ) -> tuple[list[dict], list[dict]]:
     """The status entry of every drive and the tasks still to run (finished, current drives are reused)."""
     from pavemap.io.sequence import read_sequence
 
@@ -235,7 +251,7 @@ def _plan(manifest: Manifest, net: Path, previous: dict[str, dict]) -> tuple[lis
                                                                          "worker") if k in prev})
             continue
         tasks.append({"name": d.name, "seq": str(d.path), "out": str(run), "config": cfg.to_dict(),
-                      "config_hash": e["config_hash"], "threads": 1})
+                      "config_hash": e["config_hash"], "threads": threads})
     return entries, tasks
 
 
@@ -248,12 +264,14 @@ def _write_status(net: Path, manifest: Manifest, entries: list[dict], extra: dic
 def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, scheduler: str | None = None,
               workers: int | None = None, memory_limit: str = "auto", retries: int = DEFAULT_RETRIES,
               register: bool = True, task_fn: Callable[[dict], dict] = run_drive,
-              echo: Echo = print) -> dict:
+              echo: Echo = print, threads: int = 1) -> dict:
     """Run every drive of the manifest into ``out/drives/<name>``, then build the register and the page.
 
     ``scheduler``: None for a LocalCluster of ``workers`` processes (default: the cores), ``"serial"``
     for one drive after another in this process, or a dask scheduler address (``tcp://HOST:8786``).
-    Returns the status written to ``network.json`` (plus ``failed``: the names of failed drives).
+    ``threads``: thread pools per task (1: one core each, what a worker has; 0: the process's defaults,
+    e.g. to run the drives one by one on all cores). Returns the status written to ``network.json`` (plus
+    ``failed``: the names of failed drives).
     """
     from pavemap.io.owned import claim
 
@@ -267,7 +285,7 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
         previous = {e.get("name"): e for e in read_network(net)["drives"]}
     except PavemapError:
         previous = {}
-    entries, tasks = _plan(manifest, net, previous)
+    entries, tasks = _plan(manifest, net, previous, threads)
     by_name = {e["name"]: e for e in entries}
     mode = "serial" if scheduler == "serial" else (scheduler or "LocalCluster")
     extra: dict = {"scheduler": mode}

@@ -1,0 +1,101 @@
+"""A detection's footprint on the road, and the size of a fused defect from its detections' footprints.
+
+A box's four corner rays meet the local road plane ``z = z_hit`` in a quadrilateral: the projective image of
+the box on the road, i.e. the defect's extent as that view saw it. Fusion marks vertices around each hit (the
+``hit`` association's 0.3 m disk), so an instance's vertex count says where a defect is, not how large it is.
+Its size comes from the footprints instead: per instance, the median over its detections (weighted by
+``1 / ground_px^2``, so near views count most) of
+
+- the footprint's area times :data:`FILL` of the class: a box bounds its defect, and a pothole or a patch of
+  alligator cracking fills about the ellipse inscribed in it (pi / 4 of the box);
+- the footprint's longer diagonal: a crack runs from one end of its box to the other, so its length is about
+  the box's diagonal on the road.
+
+Boxes that touch the image border (the defect runs out of the view) or have a corner above the horizon give
+no footprint.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from pavemap.geometry.camera import pixel_rays
+from pavemap.types import DefectInstance, Detection, Sequence
+
+#: Share of its footprint a defect of each class (D00, D10, D20, D40) covers: cracks are lines (their
+#: footprint area is not their area), alligator patches and potholes the inscribed ellipse.
+FILL = (1.0, 1.0, math.pi / 4, math.pi / 4)
+
+
+def footprint_quads(boxes: torch.Tensor, K: torch.Tensor, T: torch.Tensor, z: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boxes (N, 4) ``x1 y1 x2 y2`` of views K (N, 3, 3), T (N, 4, 4) cast on the planes ``z`` (N,) -> corners
+    (N, 4, 2) world x, y in ring order and ok (N,) bool (every corner ray descends to its plane)."""
+    x1, y1, x2, y2 = boxes.unbind(1)
+    uv = torch.stack([torch.stack([x1, y1], 1), torch.stack([x2, y1], 1), torch.stack([x2, y2], 1),
+                      torch.stack([x1, y2], 1)], 1)  # (N, 4, 2) in ring order
+    n = boxes.shape[0]
+    o, d = pixel_rays(K.repeat_interleave(4, 0), T.repeat_interleave(4, 0), uv.reshape(-1, 2))
+    o, d = o.reshape(n, 4, 3), d.reshape(n, 4, 3)
+    lam = (z[:, None] - o[..., 2]) / d[..., 2].clamp(max=-1e-12)
+    ok = (d[..., 2] < -1e-12).all(1) & (lam > 0).all(1) & torch.isfinite(z)
+    return o[..., :2] + lam[..., None] * d[..., :2], ok
+
+
+def shoelace(q: torch.Tensor) -> torch.Tensor:
+    """Signed area (N,) of quadrilaterals q (N, 4, 2) (the ring order's orientation)."""
+    qx, qy = q[..., 0], q[..., 1]
+    return (qx * qy.roll(-1, 1) - qx.roll(-1, 1) * qy).sum(1) / 2
+
+
+def detection_footprints(seq: Sequence, dets: list[Detection], hits: np.ndarray, border_px: float = 2.0
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per detection: footprint area (K,) m², its longer diagonal (K,) m and ok (K,) bool, on the plane through
+    its surface point ``hits`` (K, 3) (nan: no footprint)."""
+    n = len(dets)
+    if n == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0, bool)
+    frames = seq.frame_by_index()
+    K = torch.tensor(np.array([seq.cameras[d.camera].K for d in dets]), dtype=torch.float64)
+    T = torch.tensor(np.array([frames[d.frame].views[d.camera].T_world_cam for d in dets]), dtype=torch.float64)
+    boxes = torch.tensor(np.array([d.box for d in dets], dtype=np.float64).reshape(n, 4))
+    q, ok = footprint_quads(boxes, K, T, torch.as_tensor(hits[:, 2], dtype=torch.float64))
+    area = shoelace(q).abs()
+    diag = torch.maximum((q[:, 0] - q[:, 2]).norm(dim=1), (q[:, 1] - q[:, 3]).norm(dim=1))
+    W = np.array([seq.cameras[d.camera].width for d in dets], dtype=np.float64)
+    H = np.array([seq.cameras[d.camera].height for d in dets], dtype=np.float64)
+    b = boxes.numpy()
+    inside = ((b[:, 0] > border_px) & (b[:, 1] > border_px) & (b[:, 2] < W - 1 - border_px)
+              & (b[:, 3] < H - 1 - border_px))
+    good = ok.numpy() & inside & np.isfinite(hits).all(1)
+    return np.where(good, area.numpy(), np.nan), np.where(good, diag.numpy(), np.nan), good
+
+
+def _weighted_median(v: np.ndarray, w: np.ndarray) -> float:
+    order = np.argsort(v)
+    c = np.cumsum(w[order])
+    return float(v[order][np.searchsorted(c, 0.5 * c[-1])])
+
+
+def instance_sizes(instances: list[DefectInstance], inst_of: np.ndarray, area: np.ndarray, length: np.ndarray,
+                   ground_px: np.ndarray) -> None:
+    """Set ``extra["footprint_area_m2"]`` (area x FILL of the class), ``extra["footprint_length_m"]`` and
+    ``extra["footprint_views"]`` of every instance from its detections (``inst_of`` (K,) instance id, 0 none;
+    the weighted medians described in the module doc). Instances without a usable footprint get None."""
+    ok = (inst_of > 0) & np.isfinite(area) & np.isfinite(ground_px) & (ground_px > 0)
+    for inst in instances:
+        m = ok & (inst_of == inst.id)
+        n = int(m.sum())
+        inst.extra["footprint_views"] = n
+        if n == 0:
+            inst.extra["footprint_area_m2"] = inst.extra["footprint_length_m"] = None
+            continue
+        w = 1.0 / ground_px[m] ** 2
+        inst.extra["footprint_area_m2"] = round(_weighted_median(area[m], w) * FILL[inst.cls], 4)
+        inst.extra["footprint_length_m"] = round(_weighted_median(length[m], w), 3)
+
+
+__all__ = ["FILL", "detection_footprints", "footprint_quads", "instance_sizes", "shoelace"]
