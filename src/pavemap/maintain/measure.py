@@ -59,7 +59,10 @@ class MeasureConfig:
     # Height samples (depth pixels, ground points) inside the footprint measure the floor itself where there
     # are at least this many: the surface is smoother than a pothole (its relief lattice is 0.5 m along the road)
     min_samples: int = 5
-    sample_quantile: float = 0.95  # the deepest sample is noise-prone: depth_max is this quantile of them
+    sample_quantile: float = 0.99  # the deepest sample is noise-prone: depth_max is this quantile of them
+    # ... and the ring plane from the samples around it where at least this many fall in the ring: the surface
+    # there is pulled into the dent by its smoothing (the depths came out 7 mm short with the surface's ring)
+    min_ring_samples: int = 20
 
 
 def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarray | None,  # noqa: ANN001
@@ -196,11 +199,18 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
         si = np.rint((samples[:, 0] - grid[0]) / res).astype(np.int64) - i0
         sj = np.rint((samples[:, 1] - grid[1]) / res).astype(np.int64) - j0
         inb = (si >= 0) & (sj >= 0) & (si < fv.shape[1]) & (sj < fv.shape[0])
-        inside = np.zeros(len(samples), bool)
+        inside, around = np.zeros(len(samples), bool), np.zeros(len(samples), bool)
         inside[inb] = fv[sj[inb], si[inb]]
+        around[inb] = ring[sj[inb], si[inb]]
+        centre = (grid[0] + (i0 + ci) * res, grid[1] + (j0 + cj) * res)
         if inside.sum() >= cfg.min_samples:
-            return _pothole_from_samples(samples[inside], (grid[0] + (i0 + ci) * res, grid[1] + (j0 + cj) * res),
-                                         coef, sigma, n_in, int(fv.sum()) * res * res, cfg)
+            if around.sum() >= cfg.min_ring_samples:  # the plane from the same kind of measurement as the floor
+                a = samples[around]
+                c2, s2, inl2 = robust_plane(a[:, 0] - centre[0], a[:, 1] - centre[1], a[:, 2], cfg.trim_k,
+                                            cfg.iterations, cfg.order)
+                if s2 <= max(3.0 * sigma, 0.01):  # a ring on a kerb or a car's foot: the surface's ring stays
+                    coef, sigma, n_in = c2, s2, int(inl2.sum())
+            return _pothole_from_samples(samples[inside], centre, coef, sigma, n_in, int(fv.sum()) * res * res, cfg)
     d = surface_at(coef, (fi - ci) * res, (fj - cj) * res) - zc[fj, fi]  # + below the plane
     dent = d > floor
     # plane offset error at the centre ~ sigma * sqrt(p / n) (p parameters), plus one vertex's own noise;
