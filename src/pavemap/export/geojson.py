@@ -45,7 +45,9 @@ PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
     ("confidence", "float", "0-1", "highest detector confidence among its observations"),
     ("observations", "int", "count", "distinct detections fused into it"),
     ("probability", "float", "0-1", "peak fused defect probability P of its vertices"),
-    ("area_m2", "float", "m²", "area on the road (defect vertices x cell area)"),
+    ("area_m2", "float", "m²", "area on the road: potholes (D40) and alligator cracking (D20) the measured size, "
+     "weighted median over its detections of the box footprint on the road x pi/4 (a box bounds its defect; a "
+     "pothole or patch fills about the inscribed ellipse); elsewhere the fused vertices' area (mapped_area_m2)"),
     ("length_m", "float", "m", "longest extent (principal axis) of the polygon"),
     ("priority", "str", "", "urgency by the maintenance policy: repair now / schedule / monitor "
      "(unassessed before pavemap.maintain runs); sort by priority_rank"),
@@ -70,7 +72,11 @@ PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
     ("depth_sigma_mm", "float", "mm", "pothole: 1-sigma uncertainty of the depth (plane fit and mesh residual)"),
     ("measurable", "bool", "", "whether the surface under the defect was observed well enough to measure it"),
     ("measure_note", "str", "", "why a measure is missing (e.g. unobserved ground, at the mesh edge)"),
-    ("crack_length_m", "float", "m", "crack: length along its skeleton"),
+    ("mapped_area_m2", "float", "m²", "area of the fused vertices (vertices x cell area), i.e. of the polygon"),
+    ("crack_length_m", "float", "m", "crack: weighted median over its detections of the footprint's longer "
+     "diagonal on the road (skeleton_length_m where no detection gave a footprint)"),
+    ("skeleton_length_m", "float", "m", "crack: length along the skeleton of the fused vertices"),
+    ("size_views", "int", "count", "detections whose ground footprint measured the size (area_m2, crack_length_m)"),
     ("orientation_deg", "float", "degree", "crack: angle between the crack and the route (0 along, 90 across)"),
     ("orientation_ok", "bool", "", "crack: whether the orientation agrees with the class (D00 along, D10 across)"),
     ("evidence", "str", "", "relative path of the best view's crop with the box drawn (evidence/<id>.jpg)"),
