@@ -55,8 +55,9 @@ PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
     ("y_m", "float", "m", "centre y in the local world frame"),
     ("lon", "float", "degree", "centre WGS84 longitude (only with a geo origin)"),
     ("lat", "float", "degree", "centre WGS84 latitude (only with a geo origin)"),
-    ("observed", "bool", "", "its centre lies on mesh ground a training pixel or triangulated ground point reached "
-     "(false: the height there is a guess; absent with a mesh without the observed layer)"),
+    ("observed", "bool", "", "its centre lies where the mesh height was measured (a ground point or depth sample "
+     "within 2 m; false: the road carried along from where it was, the position less certain; absent with a mesh "
+     "without the observed layer)"),
     # maintenance measures (issue 16, pavemap.maintain); absent where not assessed
     ("severity_level", "str", "", "low / medium / high by the maintenance policy (pavemap.maintain.policy)"),
     ("certainty", "str", "", "confirmed / probable / single sighting (probability and observation count)"),

@@ -276,9 +276,10 @@ def self_check(geo: Geometry, spec: GridSpec, heights: np.ndarray, valid: np.nda
     if frac < cfg.min_observed_fraction:
         # Not a wrong surface: ground no camera saw (behind the first frame, past the last) holds no defect
         # either, but its heights are a guess, and a short drive is mostly that.
-        issues.append(f"mesh mostly unobserved: only {100 * frac:.0f} % of its vertices are reached by a training "
-                      f"pixel or ground point (mesh.min_observed_fraction {cfg.min_observed_fraction:.2f}); heights "
-                      "elsewhere are guesses (bev_observed.npy)")
+        issues.append(f"mesh mostly unobserved: only {100 * frac:.0f} % of its vertices have a measured height (a "
+                      f"ground point or depth sample within mesh.observed_radius_m {cfg.observed_radius_m:g} m; "
+                      f"mesh.min_observed_fraction {cfg.min_observed_fraction:.2f}); heights elsewhere are the road "
+                      "carried along from where it was measured (bev_observed.npy)")
         warn(issues[-1])
     out["warnings"] = issues + [n for n in geo.notes if n not in issues]
     return out
