@@ -36,3 +36,21 @@ def write_results(path: Path, results: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(path, results)
     print(f"-> {path}")
+
+
+def no_depth_copy(src: Path, dst: Path) -> Path:
+    """``dst``: the drive ``src`` without its depth layer (sequence.json rewritten, images / labels / truth
+    linked), made once; what the no-depth rows of a benchmark read."""
+    import json
+
+    if not (dst / "sequence.json").is_file():
+        dst.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "semantics", "truth"):
+            if (src / sub).exists() and not (dst / sub).exists():
+                (dst / sub).symlink_to((src / sub).resolve())
+        d = json.loads((src / "sequence.json").read_text())
+        for f in d["frames"]:
+            for v in f["views"].values():
+                v["depth"] = None
+        (dst / "sequence.json").write_text(json.dumps(d))
+    return dst

@@ -47,7 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import machine_entry, write_results  # noqa: E402
+from common import machine_entry, no_depth_copy, write_results  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "maintenance.json"
 CONFIG_OF = {"nuscenes-like": "nuscenes", "kitti-like": "kitti"}
@@ -70,18 +70,7 @@ def drive(data: Path, preset: str, depth: str, device: str) -> Path:
         print(f"{preset}: synthesized in {time.perf_counter() - t:.0f} s", flush=True)
     if depth == "sparse":
         return src
-    dst = data / f"maint-{preset}-none"
-    if not (dst / "sequence.json").is_file():
-        dst.mkdir(parents=True, exist_ok=True)
-        for sub in ("images", "semantics", "truth"):
-            if not (dst / sub).exists():
-                (dst / sub).symlink_to((src / sub).resolve())
-        d = json.loads((src / "sequence.json").read_text())
-        for f in d["frames"]:
-            for v in f["views"].values():
-                v["depth"] = None
-        (dst / "sequence.json").write_text(json.dumps(d))
-    return dst
+    return no_depth_copy(src, data / f"maint-{preset}-none")
 
 
 def truth_surface(seq_root: Path, surface):  # noqa: ANN001, ANN201

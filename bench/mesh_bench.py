@@ -28,7 +28,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from common import bench_parser, machine_entry, write_results  # noqa: E402
+from common import bench_parser, machine_entry, no_depth_copy, write_results  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct, render_view  # noqa: E402
 
@@ -83,18 +83,7 @@ def bench_drive(data: Path, preset: str, depth: str, device: str) -> Path:
         print(f"{preset}: synthesized in {time.perf_counter() - t:.0f} s", flush=True)
     if depth == "sparse":
         return src
-    dst = data / f"{preset}-none"
-    if not (dst / "sequence.json").is_file():
-        dst.mkdir(parents=True, exist_ok=True)
-        for sub in ("images", "semantics", "truth"):
-            if (src / sub).exists() and not (dst / sub).exists():
-                (dst / sub).symlink_to((src / sub).resolve())
-        d = json.loads((src / "sequence.json").read_text())
-        for f in d["frames"]:
-            for v in f["views"].values():
-                v["depth"] = None
-        (dst / "sequence.json").write_text(json.dumps(d))
-    return dst
+    return no_depth_copy(src, data / f"{preset}-none")
 
 
 def truth_camera_height(seq) -> float | None:  # noqa: ANN001

@@ -412,14 +412,9 @@ def _load_yaml(path: Path, default_preset: str) -> RunConfig:
     if not path.is_file():
         raise PavemapError(f"config {str(path)!r} is neither a preset ({', '.join(PRESETS)}) nor an existing "
                            "YAML file")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except yaml.YAMLError as e:
-        raise PavemapError(f"{path}: invalid YAML ({' '.join(str(e).split())})") from None
-    except UnicodeDecodeError as e:
-        raise PavemapError(f"{path}: is not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start})") from None
-    except RecursionError:
-        raise PavemapError(f"{path}: YAML nested too deeply") from None
+    from pavemap.io.yamlfile import read_yaml
+
+    data = read_yaml(path, "config") or {}
     if not isinstance(data, dict):
         raise PavemapError(f"{path}: top level must be a mapping of sections")
     base = coerce(data.get("preset", default_preset), field_types(RunConfig)["preset"], "preset", str(path))

@@ -85,15 +85,11 @@ def default_class(name: str) -> int:
 
 def load_class_map(path: str | os.PathLike) -> dict[str, int]:
     """Read an override YAML → {normalised model class name or index string: class id or DROP}."""
-    import yaml
 
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise PavemapError(f"{path}: cannot read class map ({e})") from None
-    except yaml.YAMLError as e:
-        raise PavemapError(f"{path}: invalid YAML ({e})") from None
+    from pavemap.io.yamlfile import read_yaml
+
+    data = read_yaml(path, "class map")
     if isinstance(data, dict) and isinstance(data.get("map"), dict):
         data = data["map"]
     if not isinstance(data, dict) or not data:

@@ -191,10 +191,9 @@ def resolve_data_yaml(data: str | os.PathLike, workdir: str | os.PathLike) -> Pa
     data = Path(data)
     if not data.is_file():
         raise PavemapError(f"dataset file {data} not found (an ultralytics data yaml: path, train, val, names)")
-    try:
-        d = yaml.safe_load(data.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as e:
-        raise PavemapError(f"{data}: cannot read dataset yaml ({e})") from None
+    from pavemap.io.yamlfile import read_yaml
+
+    d = read_yaml(data, "dataset yaml")
     if not isinstance(d, dict):
         raise PavemapError(f"{data}: a dataset yaml must be a mapping with path, train, val, names")
     missing = [k for k in ("train", "val", "names") if k not in d]

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from pavemap.errors import PavemapError
 from pavemap.types import DEFECT_CODES
@@ -260,16 +259,10 @@ def policy_from_dict(data: object, source: str = "<policy>") -> Policy:
 
 @functools.lru_cache(maxsize=8)
 def _load_cached(path: str, mtime_ns: int) -> Policy:
+    from pavemap.io.yamlfile import read_yaml
+
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PavemapError(f"{p}: maintenance policy not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise PavemapError(f"{p}: maintenance policy not readable ({e})") from None
-    except yaml.YAMLError as e:
-        raise PavemapError(f"{p}: invalid YAML ({' '.join(str(e).split())})") from None
-    return policy_from_dict(data, str(p))
+    return policy_from_dict(read_yaml(p, "maintenance policy"), str(p))
 
 
 def load_policy(path: str | os.PathLike | None = None) -> Policy:

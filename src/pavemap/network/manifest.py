@@ -24,8 +24,6 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
 from pavemap.errors import PavemapError
 
 #: A drive name becomes a folder name and a GeoPackage value: keep it portable.
@@ -113,15 +111,10 @@ def _drive(entry: object, i: int, base: Path, where_file: str) -> Drive:
 
 def load_manifest(path: str | os.PathLike) -> Manifest:
     """Read and check a manifest; paths are resolved against the manifest's folder."""
+    from pavemap.io.yamlfile import read_yaml
+
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PavemapError(f"{p}: manifest not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise PavemapError(f"{p}: cannot read the manifest ({e})") from None
-    except yaml.YAMLError as e:
-        raise PavemapError(f"{p}: invalid YAML ({' '.join(str(e).split())})") from None
+    data = read_yaml(p, "manifest")
     if not isinstance(data, dict) or not isinstance(data.get("drives"), list) or not data["drives"]:
         raise PavemapError(f"{p}: a manifest needs 'drives:', a list of drives (each with path and date)")
     unknown = sorted(str(k) for k in data if k not in TOP_KEYS)

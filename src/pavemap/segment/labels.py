@@ -186,12 +186,10 @@ def load_label_map(spec: str | os.PathLike) -> LabelMap:
     path = Path(s)
     if not path.is_file():
         raise PavemapError(f"class map {s!r}: no such file and not a preset; presets: {', '.join(PRESETS)}")
-    import yaml
 
-    try:
-        d = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as e:
-        raise PavemapError(f"{path}: invalid YAML ({e})") from None
+    from pavemap.io.yamlfile import read_yaml
+
+    d = read_yaml(path, "class map")
     if not isinstance(d, dict):
         raise PavemapError(f"{path}: expected a mapping with 'classes' (and optional remap, names, default)")
     if "preset" in d:
