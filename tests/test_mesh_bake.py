@@ -162,3 +162,32 @@ def test_sharpened_bake_fits_pixels_better_and_stays_near_the_texture(seq):
         assert coloured[support > 0].all() and (rgb >= 0).all() and (rgb <= 1).all()
     assert mse[0] > mse[1] > mse[2], mse
     assert max(tex_err) < 0.03, tex_err
+
+
+def test_pixels_of_a_passing_vehicle_are_left_out(seq):
+    """A 'vehicle' painted into one view's road pixels disagrees with the road the other views see."""
+    import dataclasses
+
+    from pavemap.mesh.bake import pixel_residuals, static_pixels
+
+    g, _, heights = _true_surface(seq)
+    pool = _all_views_pool(seq)
+    surf = _field(g, heights)
+    r = pixel_residuals(surf, pool, pool.T, 60.0, bake_colours(surf, pool, pool.T, 60.0)[0])
+    hits = torch.isfinite(r)
+    assert hits.float().mean() > 0.3 and float(r[hits].median()) < 0.05  # rays that land: the road's colour
+    car = (pool.view == 2) & pool.road & hits
+    car[torch.nonzero(car).squeeze(1)[car.sum() // 3:]] = False  # a third of that view's road on the mesh
+    painted = dataclasses.replace(pool, rgb=torch.where(car[:, None], torch.tensor([200, 20, 20], dtype=torch.uint8),
+                                                        pool.rgb))
+    keep = static_pixels(surf, painted, painted.T, 60.0, cutoff=0.25)
+    # most of the vehicle's pixels go (not those on road only that view saw: there it is the majority) ...
+    assert car.sum() > 20 and (~keep[car]).float().mean() > 0.5
+    assert keep[~car].float().mean() > 0.98  # ... and the road stays
+    # the texture under the vehicle is road again once its pixels are left out
+    clean = bake_colours(surf, pool, pool.T, 60.0)[0]
+    on_car = pixel_residuals(surf, painted.subset(car), painted.T, 60.0, clean) > 0.25
+    before = bake_colours(surf, painted, painted.T, 60.0)[0]
+    after = bake_colours(surf, painted.subset(keep), painted.T, 60.0)[0]
+    red = lambda t: float((t[..., 0] - t[..., 1]).mean())  # noqa: E731
+    assert on_car.all() and red(after) < red(before)

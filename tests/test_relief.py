@@ -33,7 +33,7 @@ def test_fit_recovers_a_cross_section_with_a_kerb_and_fills_a_gap_along_the_road
     qs, qt = np.meshgrid(np.arange(2, 98, 0.5), np.arange(-7.5, 6.5, 0.1))
     qs, qt = qs.ravel(), qt.ravel()
     est = fit_relief(s, t, r, qs, qt)
-    assert est is not None
+    assert est is not None and est.shape == qs.shape and np.isfinite(est).all()
     err = est - _cross_section(qt, qs)
     away = np.abs(qt + 5.0) > 0.25  # the kerb itself is a step of one lattice cell
     assert np.sqrt(np.mean(err[away] ** 2)) < 0.008
@@ -78,7 +78,7 @@ def test_anchoring_removes_a_drift_of_the_trained_surface():
     vxy = np.stack([X.ravel(), Y.ravel()], 1)
     drifted = truth + 0.03 + 0.01 * np.sin(X / 30.0)
     corr = anchor_correction(_Points(pts), spec, drifted, vxy, traj)
-    assert corr is not None
+    assert corr is not None and corr.shape == (len(vxy),) and abs(np.median(corr) + 0.03) < 0.01  # the 3 cm lift
     fixed = drifted.ravel() + corr
     inner = (vxy[:, 0] > 2) & (vxy[:, 0] < 98)
     assert abs(np.mean((fixed - truth.ravel())[inner])) < 0.002

@@ -13,38 +13,19 @@ from pathlib import Path
 
 import pytest
 
+from browser_support import launched, open_page
 from pavemap.export import write_outputs
 from pavemap.export.report import write_report
 from pavemap.export.sample import sample_inputs
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = pytest.mark.skipif(
-    not Path(CHROMIUM).exists(),
-    reason="headless Chromium not installed (Debian: apt-get install chromium, or run scripts/setup_system.sh)")
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (pip install playwright)")
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-dev-shm-usage", "--no-first-run", "--disable-extensions"]
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "report_screenshot.png"
 
 
 @pytest.fixture(scope="module")
 def browser():
-    with sync_api.sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+    with launched() as b:
         yield b
-        b.close()
-
-
-def open_page(browser, path: Path, viewport=(1400, 1000)):
-    page = browser.new_page(viewport={"width": viewport[0], "height": viewport[1]})
-    problems: list[str] = []
-    page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
-    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
-    page.on("request", lambda r: problems.append(f"request: {r.url}")
-            if not r.url.startswith(("file:", "data:")) else None)
-    page.goto(path.resolve().as_uri())
-    page.wait_for_selector('body[data-ready="1"]', timeout=15000)
-    return page, problems
 
 
 def column(page, key: str) -> int:

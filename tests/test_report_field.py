@@ -21,18 +21,12 @@ import pytest
 from PIL import Image
 
 import pavemap
+from browser_support import ARGS, CHROMIUM, launched, open_page, require_chromium
 from pavemap.config import load_config
 from pavemap.export.evidence import BOX_COLOUR, crop_with_box, view_scores, write_evidence
 from pavemap.export.report import build_report_html, write_report
 from pavemap.export.sample import sample_inputs
 from pavemap.io.sequence import read_sequence
-
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-HAVE_CHROMIUM = Path(CHROMIUM).exists()
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-        "--disable-extensions", "--disable-background-networking"]
-needs_chromium = pytest.mark.skipif(not HAVE_CHROMIUM, reason="headless Chromium not installed (apt-get install "
-                                    "chromium, or scripts/setup_system.sh)")
 
 
 def magenta(a: np.ndarray) -> np.ndarray:
@@ -200,8 +194,8 @@ def pdf_text(data: bytes) -> str:
     return "".join(out)
 
 
-@needs_chromium
 def test_print_to_pdf_has_the_work_list(field_run, tmp_path):
+    require_chromium()
     res, out = field_run
     pdf = tmp_path / "report.pdf"
     proc = subprocess.run([CHROMIUM, *ARGS, "--no-pdf-header-footer", f"--print-to-pdf={pdf}",
@@ -225,24 +219,12 @@ def test_print_stylesheet_is_present():
 
 @pytest.fixture(scope="module")
 def browser():
-    if not HAVE_CHROMIUM:
-        pytest.skip("headless Chromium not installed")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
-    with sync_api.sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+    with launched() as b:
         yield b
-        b.close()
 
 
 def _open(browser, path: Path, size=(1920, 1080)):
-    page = browser.new_page(viewport={"width": size[0], "height": size[1]})
-    problems: list[str] = []
-    page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
-    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
-    page.goto(path.resolve().as_uri())
-    page.wait_for_selector('body[data-ready="1"]', timeout=15000)
-    page.wait_for_load_state("load")
-    return page, problems
+    return open_page(browser, path, size, wait_load=True)
 
 
 def test_worklist_is_the_first_screen(browser, field_run):

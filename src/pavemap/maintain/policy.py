@@ -116,18 +116,24 @@ def _fmt(v: float) -> str:
     return ".inf" if math.isinf(v) else f"{v:g}"
 
 
+def _exact_keys(d: dict, names: tuple[str, ...], where: str, what: str, missing_hint: str) -> None:
+    """A PavemapError naming the first key of ``d`` not in ``names``, or the first of ``names`` not in ``d``."""
+    unknown = [str(k) for k in d if k not in names]
+    if unknown:
+        plural = "classes" if what == "class" else f"{what}s"
+        raise _err(where, f"unknown {what} {unknown[0]!r}; the {plural} are {', '.join(names)}")
+    missing = [n for n in names if n not in d]
+    if missing:
+        raise _err(where, f"missing {what} {missing[0]!r} ({missing_hint})")
+
+
 def check_bands(spec: object, names: tuple[str, ...], measure: str, where: str) -> Bands:
     """Bands ``{name: [from, to]}`` -> :class:`Bands`; ``names`` in increasing order, all required.
 
     They must be contiguous and non-overlapping and cover [0, .inf): a PavemapError names the band otherwise.
     """
     spec = _map(spec, where)
-    unknown = [str(k) for k in spec if k not in names]
-    if unknown:
-        raise _err(where, f"unknown band {unknown[0]!r}; the bands are {', '.join(names)}")
-    missing = [n for n in names if n not in spec]
-    if missing:
-        raise _err(where, f"missing band {missing[0]!r} (the bands are {', '.join(names)}, each [from, to])")
+    _exact_keys(spec, names, where, "band", f"the bands are {', '.join(names)}, each [from, to]")
     edges = []
     for n in names:
         iv = spec[n]
@@ -158,12 +164,7 @@ def check_bands(spec: object, names: tuple[str, ...], measure: str, where: str) 
 
 def _per_class(d: object, where: str) -> dict[int, object]:
     d = _map(d, where)
-    unknown = [str(k) for k in d if k not in DEFECT_CODES]
-    if unknown:
-        raise _err(where, f"unknown class {unknown[0]!r}; the classes are {', '.join(DEFECT_CODES)}")
-    missing = [c for c in DEFECT_CODES if c not in d]
-    if missing:
-        raise _err(where, f"missing class {missing[0]!r} (every class {', '.join(DEFECT_CODES)} needs an entry)")
+    _exact_keys(d, tuple(DEFECT_CODES), where, "class", f"every class {', '.join(DEFECT_CODES)} needs an entry")
     return {DEFECT_CODES.index(c): v for c, v in d.items()}
 
 

@@ -12,6 +12,8 @@ Those are filled from their neighbours by normalised Gaussian smoothing.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 from torch.nn import functional as F  # noqa: N812
 
@@ -33,6 +35,22 @@ def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     return y.reshape(c, *x.shape[1:])
 
 
+def _pool_hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, batch: int
+               ) -> Iterator[tuple[slice, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Per batch of pool pixels that hit the surface: (the batch's slice, hit rows (M,) within it, their
+    triangles' flat vertex ids (M, 3), barycentric weights (M, 3) float64)."""
+    nx = surface.heights.shape[1]
+    bounds = surface_bounds(surface, pool.uv.dtype)
+    for s in range(0, len(pool), batch):
+        sl = slice(s, s + batch)
+        o, d = view_rays(pool.K, T, pool.view[sl], pool.uv[sl])
+        cells = find_hits(surface, o, d, max_dist, bounds=bounds)
+        if cells.idx.numel() == 0:
+            continue
+        hit = hits_to_rayhit(surface, o, d, cells)
+        yield sl, cells.idx, cells.vertex_ids(nx), hit.bary[cells.idx].double()
+
+
 @torch.no_grad()
 def bake_colours(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
                  batch: int = 262144, sharpen_iters: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -50,22 +68,11 @@ def bake_colours(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dis
     (each pixel is spread over its triangle's three vertices); the exact solution overfits single pixels
     (held-out PSNR per number of steps: README, stage 1).
     """
-    hf = surface
-    heights = hf.heights
+    heights = surface.heights
     ny, nx = heights.shape
-    bounds = surface_bounds(hf, pool.uv.dtype)
     acc = torch.zeros(ny * nx, 4, dtype=torch.float64, device=heights.device)
     cached: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (vertex ids, weights, colours) per batch
-    for s in range(0, len(pool), batch):
-        sl = slice(s, s + batch)
-        o, d = view_rays(pool.K, T, pool.view[sl], pool.uv[sl])
-        cells = find_hits(hf, o, d, max_dist, bounds=bounds)
-        if cells.idx.numel() == 0:
-            continue
-        hit = hits_to_rayhit(hf, o, d, cells)
-        rows = cells.idx
-        vid = cells.vertex_ids(nx)  # (M, 3) flat ids
-        w = hit.bary[rows].double()
+    for sl, rows, vid, w in _pool_hits(surface, pool, T, max_dist, batch):
         col = pool.rgb[sl][rows].double() / 255.0  # (M, 3)
         vals = torch.cat([col, torch.ones_like(col[:, :1])], 1)  # (M, 4): rgb and a count
         acc.index_add_(0, vid.reshape(-1), (vals[:, None, :] * w[..., None]).reshape(-1, 4))
@@ -96,21 +103,12 @@ def pixel_residuals(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_
                     batch: int = 262144) -> torch.Tensor:
     """(N,) float32 colour distance (RGB in [0, 1], Euclidean) between each pool pixel and the surface's colour
     where its ray lands, interpolated from the vertex colours ``rgb`` (ny, nx, 3); NaN where the ray misses."""
-    nx = surface.heights.shape[1]
-    bounds = surface_bounds(surface, pool.uv.dtype)
     flat = rgb.reshape(-1, 3).double()
     out = torch.full((len(pool),), float("nan"), dtype=torch.float32, device=rgb.device)
-    for s in range(0, len(pool), batch):
-        sl = slice(s, s + batch)
-        o, d = view_rays(pool.K, T, pool.view[sl], pool.uv[sl])
-        cells = find_hits(surface, o, d, max_dist, bounds=bounds)
-        if cells.idx.numel() == 0:
-            continue
-        hit = hits_to_rayhit(surface, o, d, cells)
-        rows = cells.idx
-        pred = (hit.bary[rows].double()[..., None] * flat[cells.vertex_ids(nx)]).sum(1)
+    for sl, rows, vid, w in _pool_hits(surface, pool, T, max_dist, batch):
+        pred = (w[..., None] * flat[vid]).sum(1)
         r = torch.linalg.norm(pool.rgb[sl][rows].double() / 255.0 - pred, dim=1)
-        out[s + rows] = r.float()
+        out[sl.start + rows] = r.float()
     return out
 
 
