@@ -231,6 +231,33 @@ def test_pothole_depth_from_height_samples_where_the_surface_is_smooth():
     assert too_few.extra["measure_note"] == "" and too_few.extra["depth_max_mm"] < 3.0  # 3 samples: the surface
 
 
+@pytest.mark.parametrize("a, b", [((6.0, 2.5), (6.3, 0.5)),  # transverse, left of the camera, slanted
+                                  ((5.0, 1.5), (9.0, 1.5)),  # longitudinal, 1.5 m left of the camera axis
+                                  ((6.0, -2.0), (6.4, 0.2))])  # transverse across the camera axis
+def test_crack_length_is_the_footprints_longer_midline(a, b):
+    """A straight crack from a to b (world x ahead, y left, on the road z = 0) and its tight box: the footprint's
+    longer mid-line is the crack's length within 3 %; the longer diagonal (the former measure) is 5-11 % long."""
+    from pavemap.fuse.footprint import detection_footprints, footprint_quads
+    from pavemap.types import Camera, Detection, Frame, Sequence, View
+
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]  # looking along +x, 1.5 m up
+    T[2, 3] = 1.5
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    u = [320 - 500 * y / x for x, y in (a, b)]
+    v = [240 + 500 * 1.5 / x for x, _ in (a, b)]
+    bx = (min(u), min(v), max(u), max(v))
+    seq = Sequence("t", [], {"cam": Camera("cam", 640, 480, K)}, [Frame(0, 0.0, {"cam": View("cam", "0.png", T)})])
+    hit = np.array([[(a[0] + b[0]) / 2, (a[1] + b[1]) / 2, 0.0]])
+    area, length, ok = detection_footprints(seq, [Detection(0, "cam", bx, 1, 0.9)], hit)
+    true = math.dist(a, b)
+    assert bool(ok[0]) and abs(length[0] - true) <= 0.03 * true, (length[0], true)
+    q, _ = footprint_quads(torch.tensor([bx], dtype=torch.float64), torch.tensor(K[None]), torch.tensor(T[None]),
+                           torch.zeros(1, dtype=torch.float64))
+    diag = max(float((q[0, 0] - q[0, 2]).norm()), float((q[0, 1] - q[0, 3]).norm()))
+    assert diag > 1.05 * true  # the case tells the two measures apart
+
+
 def test_footprint_sizes_become_the_defect_sizes():
     """area_m2 of a pothole / patch and crack_length_m of a crack come from the detections' footprints; the
     fused vertices' area stays as mapped_area_m2."""

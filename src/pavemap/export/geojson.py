@@ -75,7 +75,7 @@ PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
     ("measure_note", "str", "", "why a measure is missing (e.g. unobserved ground, at the mesh edge)"),
     ("mapped_area_m2", "float", "m²", "area of the fused vertices (vertices x cell area), i.e. of the polygon"),
     ("crack_length_m", "float", "m", "crack: weighted median over its detections of the footprint's longer "
-     "diagonal on the road (skeleton_length_m where no detection gave a footprint)"),
+     "mid-line on the road (skeleton_length_m where no detection gave a footprint)"),
     ("skeleton_length_m", "float", "m", "crack: length along the skeleton of the fused vertices"),
     ("size_views", "int", "count", "detections whose ground footprint measured the size (area_m2, crack_length_m)"),
     ("orientation_deg", "float", "degree", "crack: angle between the crack and the route (0 along, 90 across)"),

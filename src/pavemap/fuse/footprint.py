@@ -8,8 +8,13 @@ Its size comes from the footprints instead: per instance, the median over its de
 
 - the footprint's area times :data:`FILL` of the class: a box bounds its defect, and a pothole or a patch of
   alligator cracking fills about the ellipse inscribed in it (pi / 4 of the box);
-- the footprint's longer diagonal: a crack runs from one end of its box to the other, so its length is about
-  the box's diagonal on the road.
+- the footprint's longer mid-line (:func:`midline_length`, the segment joining the midpoints of two opposite
+  sides): a crack runs from one end of its box to the other, so the box's mid-line along the crack spans it.
+  The mid-line, not a diagonal or a side: perspective makes the cast quad a trapezoid whose far side is wider
+  than its near side, and the crack is one diagonal of its box but the box does not say which; the longer
+  diagonal (the other one, for a crack off the camera's axis) and the long side both carry the far side's
+  widening, the mid-line its average. On the maintenance bench's 16 matched cracks (median |error|, no depth):
+  longer diagonal 21 %, along / across-road extent by class 18 %, long side 15 %, longer mid-line 14 %.
 
 Boxes that touch the image border (the defect runs out of the view) or have a corner above the horizon give
 no footprint.
@@ -51,10 +56,17 @@ def shoelace(q: torch.Tensor) -> torch.Tensor:
     return (qx * qy.roll(-1, 1) - qx.roll(-1, 1) * qy).sum(1) / 2
 
 
+def midline_length(q: torch.Tensor) -> torch.Tensor:
+    """Length (N,) of the longer mid-line of quadrilaterals q (N, 4, 2): of the two segments joining the
+    midpoints of opposite sides (a cast box's near / far sides and its left / right sides), the longer."""
+    mid = (q + q.roll(-1, 1)) / 2  # midpoints of sides 01, 12, 23, 30
+    return torch.maximum((mid[:, 0] - mid[:, 2]).norm(dim=1), (mid[:, 1] - mid[:, 3]).norm(dim=1))
+
+
 def detection_footprints(seq: Sequence, dets: list[Detection], hits: np.ndarray, border_px: float = 2.0
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per detection: footprint area (K,) m², its longer diagonal (K,) m and ok (K,) bool, on the plane through
-    its surface point ``hits`` (K, 3) (nan: no footprint)."""
+    """Per detection: footprint area (K,) m², its longer mid-line (K,) m (:func:`midline_length`) and ok (K,)
+    bool, on the plane through its surface point ``hits`` (K, 3) (nan: no footprint)."""
     n = len(dets)
     if n == 0:
         return np.zeros(0), np.zeros(0), np.zeros(0, bool)
@@ -64,14 +76,14 @@ def detection_footprints(seq: Sequence, dets: list[Detection], hits: np.ndarray,
     boxes = torch.tensor(np.array([d.box for d in dets], dtype=np.float64).reshape(n, 4))
     q, ok = footprint_quads(boxes, K, T, torch.as_tensor(hits[:, 2], dtype=torch.float64))
     area = shoelace(q).abs()
-    diag = torch.maximum((q[:, 0] - q[:, 2]).norm(dim=1), (q[:, 1] - q[:, 3]).norm(dim=1))
+    length = midline_length(q)
     W = np.array([seq.cameras[d.camera].width for d in dets], dtype=np.float64)
     H = np.array([seq.cameras[d.camera].height for d in dets], dtype=np.float64)
     b = boxes.numpy()
     inside = ((b[:, 0] > border_px) & (b[:, 1] > border_px) & (b[:, 2] < W - 1 - border_px)
               & (b[:, 3] < H - 1 - border_px))
     good = ok.numpy() & inside & np.isfinite(hits).all(1)
-    return np.where(good, area.numpy(), np.nan), np.where(good, diag.numpy(), np.nan), good
+    return np.where(good, area.numpy(), np.nan), np.where(good, length.numpy(), np.nan), good
 
 
 def _weighted_median(v: np.ndarray, w: np.ndarray) -> float:
@@ -98,4 +110,4 @@ def instance_sizes(instances: list[DefectInstance], inst_of: np.ndarray, area: n
         inst.extra["footprint_length_m"] = round(_weighted_median(length[m], w), 3)
 
 
-__all__ = ["FILL", "detection_footprints", "footprint_quads", "instance_sizes", "shoelace"]
+__all__ = ["FILL", "detection_footprints", "footprint_quads", "instance_sizes", "midline_length", "shoelace"]
