@@ -105,3 +105,21 @@ def test_a_single_frame_is_not_a_confident_map(drive):
     geo = metrics["geometry"]
     assert not geo["observable"] and not geo["trustworthy"]
     assert any(w.startswith("geometry not observable") for w in metrics["warnings"])
+
+
+def test_poses_with_a_wrong_scale_are_named(drive):
+    """Poses x2 (a wrong unit, an SfM scale): the ground the images show lies twice as far below the
+    cameras as the mount height says. The ground-point sweep (prior x0.6 .. x1.65) cannot reach it, so the
+    geometry is not observable; the plane search's height, far off the prior, names the likely cause."""
+    seq = dataclasses.replace(drive[0], frames=[dataclasses.replace(f) for f in drive[0].frames])
+    for f in seq.frames:
+        f.views = {k: dataclasses.replace(v, T_world_cam=np.r_[np.c_[v.T_world_cam[:3, :3],
+                                                                   2.0 * v.T_world_cam[:3, 3]], [[0, 0, 0, 1]]])
+                   for k, v in f.views.items()}
+    cfg = _cfg(camera_height=drive[3])
+    notes: list[str] = []
+    data = prepare(seq, cfg, torch.device("cpu"), notes.append)
+    geo = find_geometry(seq, data, cfg, notes.append)
+    assert any(n.startswith("geometry not observable") for n in notes), notes
+    warn = [n for n in notes if "wrong scale" in n]
+    assert warn and geo.cam_h > 1.4 * drive[3] and f"(x{geo.cam_h / drive[3]:.2f})" in warn[0], notes

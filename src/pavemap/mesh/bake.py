@@ -13,11 +13,13 @@ Those are filled from their neighbours by normalised Gaussian smoothing.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import torch
 from torch.nn import functional as F  # noqa: N812
 
 from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, surface_bounds
+from pavemap.mesh import exposure as exposure_model
 from pavemap.mesh.data import PixelPool
 from pavemap.mesh.model import RoadMeshModel
 from pavemap.mesh.render import view_rays
@@ -51,6 +53,80 @@ def _pool_hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist:
         yield sl, cells.idx, cells.vertex_ids(nx), hit.bary[cells.idx].double()
 
 
+class _Hits(NamedTuple):
+    """The pool pixels that hit the surface, cached for repeated passes: flat vertex ids (M, 3), barycentric
+    weights (M, 3) float32, colours (M, 3) uint8 and their views (M,) long."""
+
+    vid: torch.Tensor
+    w: torch.Tensor
+    c8: torch.Tensor
+    view: torch.Tensor
+
+
+def _hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, batch: int) -> list[_Hits]:
+    return [_Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows])
+            for sl, rows, vid, w in _pool_hits(surface, pool, T, max_dist, batch)]
+
+
+def _mean_colours(hits: list[_Hits], n: int, exposure: torch.Tensor | None, device: torch.device
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n, 3) float64 weighted-mean colours of the compensated pixels and (n,) their summed weights."""
+    acc = torch.zeros(n, 4, dtype=torch.float64, device=device)
+    for h in hits:
+        col = exposure_model.compensate(h.c8.double() / 255.0, exposure, h.view)
+        vals = torch.cat([col, torch.ones_like(col[:, :1])], 1)  # (M, 4): rgb and a count
+        acc.index_add_(0, h.vid.reshape(-1), (vals[:, None, :] * h.w.double()[..., None]).reshape(-1, 4))
+    support = acc[:, 3]
+    return acc[:, :3] / support.clamp_min(1e-12)[:, None], support
+
+
+def _fit_exposure(hits: list[_Hits], rgb: torch.Tensor, n_views: int) -> torch.Tensor:
+    pred = torch.cat([(h.w.double()[..., None] * rgb[h.vid]).sum(1) for h in hits])
+    obs = torch.cat([h.c8.double() / 255.0 for h in hits])
+    return exposure_model.fit(torch.cat([h.view for h in hits]), pred, obs, n_views)
+
+
+@torch.no_grad()
+def bake_exposed(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
+                 batch: int = 262144, sharpen_iters: int = 0, exposure_rounds: int = 0
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """:func:`bake_colours` with the views' exposures (:mod:`pavemap.mesh.exposure`) fitted alongside:
+    ``exposure_rounds`` alternations of baking the compensated colours and fitting each view's gain and
+    offset to the texture. Returns rgb, support, coloured as :func:`bake_colours` and the exposure (V, 2)
+    float64 of the pool's views (None with 0 rounds). One march over the pixels, cached."""
+    heights = surface.heights
+    ny, nx = heights.shape
+    hits = _hits(surface, pool, T, max_dist, batch)
+    exposure = None
+    rgb, support = _mean_colours(hits, ny * nx, exposure, heights.device)
+    for _ in range(exposure_rounds):
+        exposure = _fit_exposure(hits, rgb, len(pool.keys))
+        rgb, support = _mean_colours(hits, ny * nx, exposure, heights.device)
+    seen = support > 0
+    for _ in range(sharpen_iters):
+        upd = torch.zeros(ny * nx, 3, dtype=torch.float64, device=heights.device)
+        for h in hits:
+            w = h.w.double()
+            col = exposure_model.compensate(h.c8.double() / 255.0, exposure, h.view)
+            r = col - (w[..., None] * rgb[h.vid]).sum(1)  # (M, 3) residuals
+            upd.index_add_(0, h.vid.reshape(-1), (w[..., None] * r[:, None, :]).reshape(-1, 3))
+        rgb = torch.where(seen[:, None], rgb + upd / support.clamp_min(1e-12)[:, None], rgb)
+    rgb, support, coloured = _fill_unseen(rgb.reshape(ny, nx, 3), support.reshape(ny, nx), fill_sigma)
+    return rgb, support, coloured, exposure
+
+
+def _fill_unseen(rgb: torch.Tensor, support: torch.Tensor, fill_sigma: float
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Vertices without support take the normalised Gaussian average of their neighbours' colours."""
+    acc = torch.cat([rgb * support[..., None], support[..., None]], 2)
+    blurred = _gaussian_blur(acc.permute(2, 0, 1), fill_sigma)
+    fill_w = blurred[3]
+    fill = (blurred[:3] / fill_w.clamp_min(1e-12)).permute(1, 2, 0)
+    coloured = (support > 0) | (fill_w > 1e-9)
+    rgb = torch.where((support > 0)[..., None], rgb, torch.where((fill_w > 1e-9)[..., None], fill, 0.0))
+    return rgb.clamp(0, 1).float(), support.float(), coloured
+
+
 @torch.no_grad()
 def bake_colours(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
                  batch: int = 262144, sharpen_iters: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -68,34 +144,8 @@ def bake_colours(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dis
     (each pixel is spread over its triangle's three vertices); the exact solution overfits single pixels
     (held-out PSNR per number of steps: README, stage 1).
     """
-    heights = surface.heights
-    ny, nx = heights.shape
-    acc = torch.zeros(ny * nx, 4, dtype=torch.float64, device=heights.device)
-    cached: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (vertex ids, weights, colours) per batch
-    for sl, rows, vid, w in _pool_hits(surface, pool, T, max_dist, batch):
-        col = pool.rgb[sl][rows].double() / 255.0  # (M, 3)
-        vals = torch.cat([col, torch.ones_like(col[:, :1])], 1)  # (M, 4): rgb and a count
-        acc.index_add_(0, vid.reshape(-1), (vals[:, None, :] * w[..., None]).reshape(-1, 4))
-        if sharpen_iters > 0:
-            cached.append((vid, w.float(), pool.rgb[sl][rows]))
-    support = acc[:, 3]
-    rgb = acc[:, :3] / support.clamp_min(1e-12)[:, None]
-    seen = support > 0
-    for _ in range(sharpen_iters):
-        upd = torch.zeros(ny * nx, 3, dtype=torch.float64, device=heights.device)
-        for vid, w, c8 in cached:
-            r = c8.double() / 255.0 - (w.double()[..., None] * rgb[vid]).sum(1)  # (M, 3) residuals
-            upd.index_add_(0, vid.reshape(-1), (w.double()[..., None] * r[:, None, :]).reshape(-1, 3))
-        rgb = torch.where(seen[:, None], rgb + upd / support.clamp_min(1e-12)[:, None], rgb)
-    acc = torch.cat([rgb * support[:, None], support[:, None]], 1).reshape(ny, nx, 4)
-    support = support.reshape(ny, nx)
-    rgb = rgb.reshape(ny, nx, 3)
-    blurred = _gaussian_blur(acc.permute(2, 0, 1), fill_sigma)
-    fill_w = blurred[3]
-    fill = (blurred[:3] / fill_w.clamp_min(1e-12)).permute(1, 2, 0)
-    coloured = (support > 0) | (fill_w > 1e-9)
-    rgb = torch.where((support > 0)[..., None], rgb, torch.where((fill_w > 1e-9)[..., None], fill, 0.0))
-    return rgb.clamp(0, 1).float(), support.float(), coloured
+    rgb, support, coloured, _ = bake_exposed(surface, pool, T, max_dist, fill_sigma, batch, sharpen_iters)
+    return rgb, support, coloured
 
 
 @torch.no_grad()
@@ -132,13 +182,16 @@ def static_pixels(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_di
 
 @torch.no_grad()
 def bake_into(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, fill: float, max_dist: float,
-              fill_sigma: float = 1.0, sharpen_iters: int = 0) -> torch.Tensor:
+              fill_sigma: float = 1.0, sharpen_iters: int = 0, exposure_rounds: int = 0
+              ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Replace the model's vertex colours by the baked ones on its current surface (where any pixel reaches
     them, directly or through the gap fill), seen from poses T (V, 4, 4); ``fill`` is the height off the crop.
-    Returns (Nv,) bool: the vertices some training pixel sees."""
-    rgb, support, coloured = bake_colours(model.field(model.dense_heights(fill)), pool, T, max_dist, fill_sigma,
-                                          sharpen_iters=sharpen_iters)
+    Returns (Nv,) bool: the vertices some training pixel sees, and the views' exposure (V, 2) or None
+    (``exposure_rounds``: :func:`bake_exposed`)."""
+    rgb, support, coloured, exposure = bake_exposed(model.field(model.dense_heights(fill)), pool, T, max_dist,
+                                                    fill_sigma, sharpen_iters=sharpen_iters,
+                                                    exposure_rounds=exposure_rounds)
     flat = model.vertex_flat_ids
     ok = coloured.reshape(-1)[flat]
     model.rgb.data[ok] = rgb.reshape(-1, 3)[flat][ok].to(model.rgb.dtype)
-    return support.reshape(-1)[flat] > 0
+    return support.reshape(-1)[flat] > 0, exposure

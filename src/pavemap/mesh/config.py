@@ -139,6 +139,9 @@ class MeshConfig:
     # Jacobi steps from the weighted mean towards the least-squares colours in the final bake (bake_colours):
     # the mean blurs, the exact solution overfits single pixels.
     bake_sharpen_iters: int = 2
+    # Rounds of fitting each view's exposure (a gain and an offset, pavemap.mesh.exposure) in the final bake:
+    # real cameras change exposure along a drive; held-out views take their neighbours' (0: off).
+    exposure_rounds: int = 2
     bake_fill_sigma: float = 1.0  # cells: vertices no training pixel hits take their neighbours' colour
     height_refresh_steps: int = 16  # steps between full-grid height re-evaluations used by the march
     resume: bool = True  # continue from DIR/checkpoint.pt when it matches
@@ -174,7 +177,8 @@ class MeshConfig:
                      "observed_radius_m"):
             _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
-                     "pose_align_rounds", "seed", "init_fine_cell_m", "check_holdout_every", "view_range_m",
+                     "pose_align_rounds", "exposure_rounds", "seed", "init_fine_cell_m", "check_holdout_every",
+                     "view_range_m",
                      "moving_cutoff", "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height", "lr_pose", "lr_pose_rot",
                      "w_rgb", "w_sem", "w_depth", "w_smooth"):
             _require(self, name, lambda v: v >= 0, "must be >= 0")

@@ -10,6 +10,7 @@ import torch
 
 from pavemap.geometry import HeightField, find_hits, hits_to_rayhit, surface_bounds
 from pavemap.io.truth import has_truth_height, read_truth_height
+from pavemap.mesh import exposure as exposure_model
 from pavemap.mesh.data import PixelPool
 from pavemap.mesh.model import RoadMesh, RoadMeshModel
 from pavemap.mesh.pose import corrected_poses
@@ -26,10 +27,12 @@ def psnr(mse: float) -> float:
 @torch.no_grad()
 def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, max_dist: float,
                   delta: torch.Tensor | None = None, max_pixels: int | None = None, batch: int = 131072,
-                  generator: torch.Generator | None = None) -> dict[str, float]:
+                  generator: torch.Generator | None = None, exposure: torch.Tensor | None = None
+                  ) -> dict[str, float]:
     """Render the pool's pixels (a random ``max_pixels`` of them when given) on dense ``heights`` (ny, nx)
-    from the pool's poses corrected by ``delta`` (V, 6). Returns psnr over road pixels the mesh covers,
-    sem_acc over labelled hit pixels, coverage (hit fraction) and road_pixels."""
+    from the pool's poses corrected by ``delta`` (V, 6), each view at its ``exposure`` (V, 2) when given.
+    Returns psnr over road pixels the mesh covers, sem_acc over labelled hit pixels, coverage (hit fraction)
+    and road_pixels."""
     n = len(pool)
     idx = torch.arange(n, device=pool.view.device)
     if max_pixels is not None and n > max_pixels:
@@ -47,7 +50,7 @@ def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, 
         n_hit += int(hv.sum())
         cid = model.flat_to_compact[hit.vertex_ids[hv]]
         bary = hit.bary[hv]
-        rgb = (bary[..., None] * model.rgb[cid]).sum(1).clamp(0, 1)
+        rgb = exposure_model.apply((bary[..., None] * model.rgb[cid]).sum(1), exposure, pool.view[b][hv]).clamp(0, 1)
         gt = pool.rgb[b][hv].float() / 255.0
         road = pool.road[b][hv]
         se += ((rgb - gt) ** 2).mean(1)[road].double().sum()
@@ -94,26 +97,30 @@ def truth_metrics(mesh: RoadMesh, truth: HeightField, seen: torch.Tensor | None)
 
 
 def stage_metrics(fit: Fit, data: TrainData, mesh: RoadMesh, fill: float, eval_delta: torch.Tensor | None,
-                  seen: torch.Tensor | None, seq_root: str | os.PathLike | None) -> dict:
+                  seen: torch.Tensor | None, seq_root: str | os.PathLike | None,
+                  exposure: torch.Tensor | None = None) -> dict:
     """The final evaluation of a run: held-out psnr / sem_acc / coverage on all evaluation pixels, the fit to
     the training views (on their refined poses), the grid, the refined poses, and the height error where
-    the sequence has a true surface. ``seen``: (Nv,) bool vertices a training pixel reaches, or None."""
+    the sequence has a true surface. ``seen``: (Nv,) bool vertices a training pixel reaches, or None;
+    ``exposure``: (V, 2) the training views' (held-out views get theirs interpolated in time)."""
     model, pool, cfg = fit.model, fit.pool, fit.cfg
     heights = model.dense_heights(fill)
     t_ev = time.perf_counter()
-    ev = evaluate_pool(model, data.epool, heights, cfg.max_dist, delta=eval_delta)
+    ev_exposure = None if exposure is None else exposure_model.interpolate(pool.keys, exposure, data.epool.keys)
+    ev = evaluate_pool(model, data.epool, heights, cfg.max_dist, delta=eval_delta, exposure=ev_exposure)
     ev_s = time.perf_counter() - t_ev
     # The fit to the training views (on their refined poses): with pose refinement the held-out views keep
     # their raw poses (plus interpolated corrections), so this is where aligned poses show.
     view_delta = None if fit.poses is None else fit.poses.view_delta()
     ev_train = evaluate_pool(model, pool, heights, cfg.max_dist, view_delta, max_pixels=200000,
-                             generator=torch.Generator().manual_seed(cfg.seed + 3))
+                             generator=torch.Generator().manual_seed(cfg.seed + 3), exposure=exposure)
     grid = data.grid
     metrics: dict = {
         "psnr": ev["psnr"], "sem_acc": ev["sem_acc"] if data.use_sem else None, "train_psnr": ev_train["psnr"],
         "heldout": data.heldout, "heldout_views": len(data.epool.keys), "train_views": len(pool.keys),
         "coverage": ev["coverage"], "vertices": grid.vertices, "faces": grid.faces, "grid": grid.spec.to_dict(),
         "eval_pixels_per_second": len(data.epool) / max(ev_s, 1e-9),
+        "exposure": exposure_model.summary(exposure),
     }
     if view_delta is not None:
         with torch.no_grad():

@@ -105,7 +105,9 @@ def find_geometry(seq: Sequence, data: TrainData, cfg: MeshConfig, warn: Warn) -
                 else f"the prior mesh.camera_height ({geo.cam_h:.2f} m), unchecked")
         note(f"geometry not observable: no depth and no triangulated ground ({why}); the camera height is {what}")
     if geo.found is not None:
-        _compare_prior(geo, cfg, note)
+        _compare_prior(geo, geo.found, "found from the images", cfg, note)
+    elif geo.source == "plane search":
+        _compare_prior(geo, geo.cam_h, "of the plane search", cfg, note)
     return geo
 
 
@@ -129,12 +131,12 @@ def _height_from_points(geo: Geometry, seq: Sequence, data: TrainData, cfg: Mesh
     geo.source = "ground points"
 
 
-def _compare_prior(geo: Geometry, cfg: MeshConfig, note: Warn) -> None:
-    off = (geo.found - cfg.camera_height) / cfg.camera_height
+def _compare_prior(geo: Geometry, height: float, source: str, cfg: MeshConfig, note: Warn) -> None:
+    off = (height - cfg.camera_height) / cfg.camera_height
     if abs(off) > cfg.camera_height_warn_frac:
-        note(f"camera height found from the images {geo.found:.2f} m is {100 * off:+.0f} % off the prior "
+        note(f"camera height {source} {height:.2f} m is {100 * off:+.0f} % off the prior "
              f"mesh.camera_height {cfg.camera_height:.2f} m: a wrong mount height, or poses with a wrong scale "
-             f"(x{geo.found / cfg.camera_height:.2f}); using {geo.cam_h:.2f} m")
+             f"(x{height / cfg.camera_height:.2f}); using {geo.cam_h:.2f} m")
 
 
 def add_point_depth(pool: PixelPool, gp: GroundPoints, scale: float) -> PixelPool:

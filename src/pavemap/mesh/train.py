@@ -81,6 +81,7 @@ class _Run:
     align_log: list[dict] = dataclasses.field(default_factory=list)
     moving_share: float = 0.0  # training pixels left out as moving objects (_drop_moving)
     samples: np.ndarray | None = None  # (N, 3) the height measurements (_samples)
+    exposure: torch.Tensor | None = None  # (V, 2) the training views' gain and offset (final bake)
 
     def warn(self, msg: str) -> None:
         self.notes.append(msg)
@@ -115,7 +116,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     if cfg.moving_cutoff > 0:
         _drop_moving(fit, run)
     if cfg.bake_init and run.done.epoch == 0:
-        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma)
+        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma)[0]
     history, schedule = _train(fit, run, out_dir, progress)
     mesh, metrics = _finish(fit, run, seq, history, schedule)
     if out_dir is not None:
@@ -148,10 +149,11 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
         _anchor(fit, run)
     seen = None
     if cfg.bake_final:
-        seen = bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
-                         sharpen_iters=cfg.bake_sharpen_iters)
+        seen, run.exposure = bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist,
+                                       cfg.bake_fill_sigma, sharpen_iters=cfg.bake_sharpen_iters,
+                                       exposure_rounds=cfg.exposure_rounds)
     mesh = to_road_mesh(fit.model, data.class_ids, data.use_sem)
-    metrics = {**stage_metrics(fit, data, mesh, run.fill, _eval_delta(fit, data), seen, seq.root),
+    metrics = {**stage_metrics(fit, data, mesh, run.fill, _eval_delta(fit, data), seen, seq.root, run.exposure),
                "device": str(run.device), "epochs": cfg.epochs, **schedule, "camera_height_init": run.cam_h,
                "moving_pixel_share": round(run.moving_share, 5)}
     run.samples = _samples(fit, run)
