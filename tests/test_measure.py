@@ -231,6 +231,43 @@ def test_pothole_depth_from_height_samples_where_the_surface_is_smooth():
     assert too_few.extra["measure_note"] == "" and too_few.extra["depth_max_mm"] < 3.0  # 3 samples: the surface
 
 
+def test_stage1_mesh_gives_no_depth_without_depth_measurements():
+    """On stage 1's mesh (surface_floor False) a pothole's depth comes from depth samples inside it or not at all;
+    the maintenance stage on a drive without a depth layer marks it not measurable (its ground points are not
+    floor measurements) and grades it by its area, saying so."""
+    from shapely.geometry import Point
+
+    from pavemap.maintain import assess
+    from pavemap.maintain.measure import MeasureConfig
+    from pavemap.types import Camera, Frame, Sequence, View
+
+    z, X, Y = _road()
+    cx, cy, R, D = 4.0, 2.0, 0.5, 0.06
+    z = z - _bowl(X, Y, cx, cy, R, D)  # even a mesh that kept the dent: no samples, no depth
+    lab = _labels_disk(X, Y, cx, cy, R)
+    rng = np.random.default_rng(4)
+    xy = np.column_stack([rng.uniform(cx - 0.3, cx + 0.3, 40), rng.uniform(cy - 0.3, cy + 0.3, 40)])
+    pts = np.column_stack([xy, np.full(len(xy), 9.99)])
+    mesh_cfg = MeasureConfig(surface_floor=False)
+    none, few, enough = _inst(1, 3), _inst(1, 3), _inst(1, 3)
+    measure_instances([none], _surface(z), lab, config=mesh_cfg)
+    measure_instances([few], _surface(z), lab, samples=pts[:3], config=mesh_cfg)
+    measure_instances([enough], _surface(z), lab, samples=pts, config=mesh_cfg)
+    assert none.extra["measurable"] is False and none.extra["depth_max_mm"] is None
+    assert none.extra["measure_note"] == "floor not measured (no depth measurements)"
+    assert few.extra["measure_note"] == "floor not measured (3 height samples inside it, 5 needed)"
+    assert enough.extra["measurable"] is True and enough.extra["measure_note"].startswith("from 40 height samples")
+    views = [Frame(k, float(k), {"cam": View("cam", f"{k}.png", np.array(
+        [[1.0, 0, 0, 0.5 * k], [0, 1, 0, 2.0], [0, 0, 1, 11.5], [0, 0, 0, 1]]))}) for k in range(16)]
+    seq = Sequence("t", [], {"cam": Camera("cam", 64, 48, np.eye(3))}, views)  # no depth layer
+    pot = _inst(1, 3, centroid=(cx, cy))
+    pot.polygon, pot.area_m2 = Point(cx, cy).buffer(R), 0.6
+    assess([pot], seq, _surface(z), lab, samples=pts)  # the mesh's samples: triangulated ground points
+    e = pot.extra
+    assert e["measurable"] is False and e["depth_max_mm"] is None and e["severity_level"] == "high"
+    assert e["measure_note"].startswith("floor not measured (no depth measurements); severity from area_m2 = ")
+
+
 @pytest.mark.parametrize("a, b", [((6.0, 2.5), (6.3, 0.5)),  # transverse, left of the camera, slanted
                                   ((5.0, 1.5), (9.0, 1.5)),  # longitudinal, 1.5 m left of the camera axis
                                   ((6.0, -2.0), (6.4, 0.2))])  # transverse across the camera axis

@@ -15,6 +15,7 @@ Record keys written into ``DefectInstance.extra`` are listed in
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from pavemap.maintain.policy import (
 )
 from pavemap.maintain.segments import Segment, build_segments
 from pavemap.types import DefectInstance, Sequence
+
+if TYPE_CHECKING:  # measure imports scipy: loaded when the stage runs, not with the package
+    from pavemap.maintain.measure import MeasureConfig
 
 
 def _policy(policy: Policy | str | os.PathLike | None) -> Policy:
@@ -87,7 +91,8 @@ def assess_instances(instances: list[DefectInstance], route: np.ndarray | None,
 
 def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels: np.ndarray | None = None,  # noqa: ANN001
            observed=None, policy: Policy | str | os.PathLike | None = None, segment_m: float = 100.0,  # noqa: ANN001
-           lane_width_m: float | None = None, samples: np.ndarray | None = None) -> list[Segment]:
+           lane_width_m: float | None = None, samples: np.ndarray | None = None,
+           measure: MeasureConfig | None = None) -> list[Segment]:
     """The maintenance stage: measure, grade and rank the fused instances (in place) and cut the road into segments.
 
     instances: stage 3's :class:`DefectInstance` list; seq: the drive (its trajectory is the route);
@@ -96,19 +101,22 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
     (``FusionResult.instance_labels``); observed (ny, nx) bool or None (the mesh's observed layer);
     policy: a :class:`Policy`, a policy YAML path, or None / "" for the built-in one; samples (N, 3) the
     mesh's height measurements (``RoadMesh.samples``) or None, to which the sequence's full-resolution depth
-    pixels under the potholes are added (:func:`pavemap.maintain.samples.depth_samples`).
+    pixels under the potholes are added (:func:`pavemap.maintain.samples.depth_samples`); measure: the
+    :class:`~pavemap.maintain.measure.MeasureConfig` (default: ``surface_floor`` False, a pothole's depth only
+    from depth measurements inside it, see :func:`_pothole_samples`).
 
     Runs :func:`pavemap.maintain.measure.measure_instances` (depth, volume, crack length, orientation) ->
     chainage, offset, lane position -> severity level, certainty -> urgency, priority rank ->
     segments (each instance's ``extra["segment"]``). Returns the segments (``FusionResult.segments``).
     """
-    from pavemap.maintain.measure import measure_instances
+    from pavemap.maintain.measure import MeasureConfig, measure_instances
 
     pol = _policy(policy)
     route = route_polyline(seq.trajectory()) if seq.frames else np.zeros((0, 2))
     if surface is not None:
         measure_instances(instances, surface, labels, observed=observed, route=route if len(route) else None,
-                          samples=_pothole_samples(instances, seq, samples))
+                          samples=_pothole_samples(instances, seq, samples),
+                          config=measure or MeasureConfig(surface_floor=False))
     adopt_footprint_sizes(instances)
     assess_instances(instances, route, pol, lane_width_m)
     if len(route) == 0:
@@ -121,15 +129,23 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
 
 
 def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np.ndarray | None) -> np.ndarray | None:
-    """The mesh's height samples plus the depth pixels under the potholes (their polygons' boxes, 0.7 m wider)."""
+    """The height measurements that can measure a pothole's floor: the mesh's samples plus the depth pixels under
+    the potholes (their polygons' boxes, 0.7 m wider), where the drive has a depth layer; None without one.
+
+    Without depth the mesh's samples are triangulated ground points, matched by a sweep of horizontal planes
+    (exact on flat road, not in a dent): inside a pothole they sit on the rim and the far wall, which a forward
+    camera sees, not on the floor behind the near rim. On the bench's no-depth kitti-like drive they gave 5
+    potholes depths 16-76 mm off (median 23 mm), so they measure no depth and the pothole is "not measurable".
+    """
     from pavemap.maintain.samples import depth_samples
 
+    if not any(v.depth for f in seq.frames for v in f.views.values()):
+        return None
     pots = [i for i in instances if i.cls == 3 and i.polygon is not None and not i.polygon.is_empty]
     boxes = np.array([np.asarray(i.polygon.bounds) + [-0.7, -0.7, 0.7, 0.7] for i in pots]).reshape(-1, 4)
-    extra = depth_samples(seq, boxes) if len(boxes) and any(v.depth for f in seq.frames for v in f.views.values()) \
-        else np.zeros((0, 3))
+    extra = depth_samples(seq, boxes) if len(boxes) else np.zeros((0, 3))
     parts = [p for p in (samples, extra) if p is not None and len(p)]
-    return np.concatenate(parts).astype(np.float64) if parts else None
+    return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
 
 
 def adopt_footprint_sizes(instances: list[DefectInstance]) -> None:

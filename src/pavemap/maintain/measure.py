@@ -11,8 +11,10 @@ beyond ``trim_k`` robust sigmas, so a ring that grazes the dent's wall or a kerb
 It is a plane plus quadratic terms by default (``order``): the road's crown would otherwise read as
 1-2 mm of depth under a 1 m ring.
 Depth is the plane minus the surface over the footprint dilated by ``foot_dilate_m`` (detection
-boxes can be smaller than the pothole). Vertices deeper than the noise floor (twice the ring's
-residual sigma) form the dent: its mean depth and its volume. A footprint on unobserved ground, at
+boxes can be smaller than the pothole), or, where enough height samples fall inside, from those samples;
+with ``surface_floor`` False (stage 1's mesh) only from the samples, else "not measurable".
+Vertices deeper than the noise floor (twice the ring's residual sigma) form the dent: its mean depth
+and its volume. A footprint on unobserved ground, at
 the mesh edge, or with too few ring vertices is "not measurable": the depths are None and
 ``measure_note`` says why, never a made-up number.
 
@@ -63,6 +65,11 @@ class MeasureConfig:
     # ... and the ring plane from the samples around it where at least this many fall in the ring: the surface
     # there is pulled into the dent by its smoothing (the depths came out 7 mm short with the surface's ring)
     min_ring_samples: int = 20
+    # Whether the surface itself measures a pothole's floor where too few samples fall inside (a dense scan,
+    # the true surface). False for stage 1's mesh (pavemap.maintain.assess): its relief lattice is 0.5 m along
+    # the road, so without samples its dent is an interpolation between the rims (3-27 mm for 11 potholes 47-100
+    # mm deep on the bench's no-depth drives), and the depth is "not measurable", never that number.
+    surface_floor: bool = True
 
 
 def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarray | None,  # noqa: ANN001
@@ -211,6 +218,10 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
                 if s2 <= max(3.0 * sigma, 0.01):  # a ring on a kerb or a car's foot: the surface's ring stays
                     coef, sigma, n_in = c2, s2, int(inl2.sum())
             return _pothole_from_samples(samples[inside], centre, coef, sigma, n_in, int(fv.sum()) * res * res, cfg)
+    if not cfg.surface_floor:
+        n = 0 if samples is None or not len(samples) else int(inside.sum())
+        return _not_measurable(f"floor not measured ({n} height samples inside it, {cfg.min_samples} needed)"
+                               if samples is not None else "floor not measured (no depth measurements)")
     d = surface_at(coef, (fi - ci) * res, (fj - cj) * res) - zc[fj, fi]  # + below the plane
     dent = d > floor
     # plane offset error at the centre ~ sigma * sqrt(p / n) (p parameters), plus one vertex's own noise;
