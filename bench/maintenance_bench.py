@@ -14,7 +14,8 @@ compared on matched pairs of the same class:
 - area error (%, |mapped area_m2 - truth area| / truth) of potholes and alligator cracking;
 - crack length error (%, skeleton ``crack_length_m`` vs the truth polyline ``length_m``; the principal
   extent ``length_m`` alongside for comparison) and the share with ``orientation_ok``;
-- severity level agreement (:func:`pavemap.maintain.policy.severity_level` of mapped and truth measures);
+- severity level agreement (:func:`pavemap.maintain.policy.severity_level` of mapped and truth measures),
+  per class with every disagreeing pair and its measures (``severity_by_class``, also printed);
 - the same pothole measures on the *true* surface sampled at the mesh grid (``truth_surface``): the
   error of the measuring method alone, so a miss can be told apart from the mesh's smoothing;
 - the same measures after fusing the same detections on the same mesh with ``fusion.association:
@@ -23,6 +24,11 @@ compared on matched pairs of the same class:
 
 A rerun resumes each run (the mesh is reused), so its ``run`` seconds are short; ``seconds.previous``
 keeps the seconds of the results file it replaces.
+
+The segment row (``segments``, :func:`segment_row`; ``--no-segments`` leaves it out): a kitti-like drive
+whose first half is clean and second half damaged (``pavemap synth --defect-free-until``), mapped end to
+end without depth, cut into 10 m segments; per segment the mapped PCI-like index beside the truth's density
+and the truth's own index, and whether the index falls as the density rises.
 
 Writes ``bench/results/maintenance.json`` (commit, uptime, seconds per run).
 
@@ -57,6 +63,11 @@ DRIVES = {"kitti-like": {"frames": 40, "scale": 0.5, "road_after": 30.0},
 WORLD = {"defect_density": 40.0, "class_mix": (0.3, 0.2, 0.15, 0.35)}
 TARGETS = {"pothole_depth_abs_err_mm": {"median": 10.0, "p90": 20.0}, "area_err_pct_median": 25.0,
            "crack_length_err_pct_median": 20.0, "severity_agreement": 0.85}
+# The segment row: a kitti-like drive of 79 m without depth, no defect centred in its first 40 m (synth's
+# defect_free_until_m), cut into 10 m segments (4 clean, 4 damaged), so the index meets a range of densities.
+SEGMENT_DRIVE = {"preset": "kitti-like", "seed": 1, "frames": 80, "scale": 0.5, "road_after": 8.0,
+                 "defect_free_until_m": 40.0, "defect_density": 40.0, "class_mix": WORLD["class_mix"]}
+SEGMENT_M = 10.0
 
 
 def drive(data: Path, preset: str, depth: str, device: str) -> Path:
@@ -88,11 +99,12 @@ def truth_surface(seq_root: Path, surface):  # noqa: ANN001, ANN201
 
 def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str) -> tuple:
     """pavemap.run, then fusion again in memory (label image) and the maintenance stage the pipeline runs
-    (:func:`pavemap.maintain.assess`: surface and sample measures, footprint sizes) on the mesh, and the same
-    on the true surface without samples (the measuring method alone)."""
+    (:func:`pavemap.maintain.assess`: surface and sample measures, footprint sizes) on the mesh, and the surface
+    measures on the true surface without samples (the measuring method alone)."""
     import pavemap
     from pavemap.io.sequence import DETECTIONS_FILE, read_detections, read_sequence
     from pavemap.maintain import assess
+    from pavemap.maintain.measure import MeasureConfig, measure_instances
     from pavemap.mesh import load_mesh
     from pavemap.mesh.geometry import mark_observed
     from pavemap.pipeline import filter_and_fuse
@@ -111,8 +123,10 @@ def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str) -> t
     t = time.perf_counter()
     assess(res.instances, seq, mesh.surface, res.instance_labels, mesh.observed, samples=mesh.samples)
     measure_s = time.perf_counter() - t
-    assess(on_truth, seq, truth_surface(seq_dir, mesh.surface),
-           res.instance_labels, None, samples=np.zeros((0, 3)))
+    # the measuring method alone: the true surface is the floor's measurement, no samples (assess would add the
+    # drive's depth pixels, which made this row 4.5 mm with sparse depth against 0.7 mm without)
+    measure_instances(on_truth, truth_surface(seq_dir, mesh.surface), res.instance_labels,
+                      config=MeasureConfig(surface_floor=True))
     # Diagnostic: the same mesh and detections fused with fusion.association = footprint (each detection
     # on the vertices under its whole box, not a 0.3 m disk around the box centre's hit)
     fc = dataclasses.replace(cfg.fusion, association="footprint")
@@ -215,6 +229,42 @@ def summarise(rows: list[dict]) -> dict:
     }
 
 
+#: The measure the policy grades each class by (mapped key, truth key of a compare() row).
+SEVERITY_MEASURE = {0: ("crack_length_m", "truth_length_m"), 1: ("crack_length_m", "truth_length_m"),
+                    2: ("area_m2", "truth_area_m2"), 3: ("depth_max_mm", "truth_depth_max_mm")}
+
+
+def severity_by_class(rows: list[dict]) -> dict:
+    """Per class: matched pairs graded, how many agree, and each disagreeing pair with the mapped and the true
+    measure (potholes also their areas: without a measured depth the policy's fallback grades by area)."""
+    from pavemap.types import DEFECT_CODES
+
+    out = {}
+    for c, (mk, tk) in SEVERITY_MEASURE.items():
+        graded = [r for r in rows if r["cls"] == c and "severity_level" in r]
+        bad = []
+        for r in graded:
+            if r["severity_level"] == r["truth_severity_level"]:
+                continue
+            bad.append({"preset": r.get("preset"), "truth_id": r["truth_id"], "truth": r["truth_severity_level"],
+                        "mapped": r["severity_level"], "measure": mk, "mapped_value": r.get(mk),
+                        "truth_value": r.get(tk),
+                        **({"area_m2": r["area_m2"], "truth_area_m2": r["truth_area_m2"]} if c == 3 else {}),
+                        **({"note": r["measure_note"]} if r.get("measure_note") else {})})
+        out[DEFECT_CODES[c]] = {"pairs": len(graded), "agree": len(graded) - len(bad), "disagree": bad}
+    return out
+
+
+def print_severity(depth: str, table: dict) -> None:
+    """The disagreeing pairs, one line each: which class, level and measure missed."""
+    for code, t in table.items():
+        print(f"severity {depth} {code}: {t['agree']} / {t['pairs']} agree", flush=True)
+        for b in t["disagree"]:
+            area = f", area_m2 {b['area_m2']} (truth {b['truth_area_m2']})" if "area_m2" in b else ""
+            print(f"  {b['preset']} #{b['truth_id']}: truth {b['truth']}, mapped {b['mapped']}: {b['measure']} "
+                  f"{b['mapped_value']} (truth {b['truth_value']}){area} {b.get('note', '')}", flush=True)
+
+
 def meets(s: dict) -> dict:
     t = TARGETS
 
@@ -232,9 +282,82 @@ def previous_seconds(path: Path) -> dict:
     """{(depth, preset): seconds} of the results file already there (empty when none)."""
     try:
         old = json.loads(path.read_text())
-        return {(d, p): e["seconds"] for d, r in old["results"].items() for p, e in r["presets"].items()}
+        # without their own "previous": one run back, not a chain of every earlier run
+        return {(d, p): {k: v for k, v in e["seconds"].items() if k != "previous"}
+                for d, r in old["results"].items() for p, e in r["presets"].items()}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {}
+
+
+def segment_row(data: Path, device: str) -> dict:
+    """The clean-then-damaged drive (:data:`SEGMENT_DRIVE`) mapped end to end without depth (``pavemap.run``,
+    ``maintenance.segment_m`` = :data:`SEGMENT_M`): per segment the mapped index and defects beside the truth's
+    (its defects per 100 m² of corridor, and the same index computed on the truth records); whether the mapped
+    index falls as the truth's density rises (Spearman rank, pairwise order, clean segments above damaged ones)."""
+    import pavemap
+    from pavemap.maintain.chainage import chainage, route_polyline
+    from pavemap.maintain.policy import load_policy, severity_level
+    from pavemap.maintain.segments import build_segments
+    from pavemap.synth import load_truth_defects, synthesize
+
+    kw = dict(SEGMENT_DRIVE)
+    preset, seed = kw.pop("preset"), kw.pop("seed")
+    seq_dir, run_dir = data / f"maint-segments-{preset}-none", data / f"maint-segments-run-{preset}-none"
+    t = time.perf_counter()
+    if not (seq_dir / "sequence.json").is_file():
+        synthesize(seq_dir, preset, seed=seed, depth="none", device=device, progress=False, **kw)
+    synth_s = time.perf_counter() - t
+    cfg = pavemap.load_config(CONFIG_OF[preset])
+    cfg.device, cfg.maintenance.segment_m = device, SEGMENT_M
+    t = time.perf_counter()
+    res = pavemap.run(seq_dir, cfg, run_dir, overwrite=True, progress=False)  # a rerun resumes the mesh
+    run_s = time.perf_counter() - t
+    from pavemap.io.sequence import read_sequence
+
+    route = route_polyline(read_sequence(seq_dir).trajectory())
+    pol = load_policy()
+    truth = [truth_measures(t.properties) for t in load_truth_defects(seq_dir)]
+    s, _ = chainage(route, np.array([[r["x_m"], r["y_m"]] for r in truth]).reshape(-1, 2))
+    for r, sk in zip(truth, s, strict=True):
+        r["chainage_m"] = float(sk)
+        r["severity_level"] = severity_level(r["cls"], r, pol)
+    tsegs = build_segments(route, truth, pol, SEGMENT_M)
+    if [(a.start_m, a.end_m) for a in tsegs] != [(b.start_m, b.end_m) for b in res.segments]:
+        raise RuntimeError("the truth's segments and the run's differ: not the same route")
+    rows = [{"segment": m.id, "chainage_m": [round(m.start_m, 1), round(m.end_m, 1)],
+             "truth_defects": sum(tr.counts.values()),
+             "truth_per_100m2": round(100.0 * sum(tr.counts.values()) / tr.corridor_area_m2, 3),
+             "truth_pci": round(tr.pci, 1), "truth_total_deduct": round(tr.total_deduct, 1),
+             "mapped_defects": sum(m.counts.values()), "pci": round(m.pci, 1), "total_deduct": round(m.total_deduct, 1)}
+            for tr, m in zip(tsegs, res.segments, strict=True)]
+    return {"drive": {**SEGMENT_DRIVE, "segment_m": SEGMENT_M}, "rows": rows, **segment_order(rows),
+            "seconds": {"synth": round(synth_s, 1), "run": round(run_s, 1)}}
+
+
+def segment_order(rows: list[dict]) -> dict:
+    """Does the mapped index fall as the truth's density rises? Spearman rank of the index against the truth's
+    density and against the truth's own index; pairs of segments whose order disagrees with the truth's
+    density (a denser one scored higher); whether every clean segment scores above every damaged one. The index
+    is 0 wherever the corrected deduct reaches 100 (one high pothole in a 10 m segment does), so the summed
+    deducts (each capped at 100, not their total) are ranked against the density among the damaged segments."""
+    from scipy.stats import spearmanr
+
+    dens = np.array([r["truth_per_100m2"] for r in rows])
+    pci = np.array([r["pci"] for r in rows])
+    tpci = np.array([r["truth_pci"] for r in rows])
+
+    def rho(a: np.ndarray, b: np.ndarray) -> float | None:
+        v = spearmanr(a, b).statistic if len(a) > 2 and np.ptp(a) > 0 and np.ptp(b) > 0 else None
+        return None if v is None or not np.isfinite(v) else round(float(v), 3)
+
+    worse = [(int(rows[i]["segment"]), int(rows[j]["segment"])) for i in range(len(rows)) for j in range(len(rows))
+             if dens[j] > dens[i] and pci[j] > pci[i]]  # j denser in the truth, yet scored better
+    clean, damaged = pci[dens == 0], pci[dens > 0]
+    tdd = np.array([r["total_deduct"] for r in rows])
+    return {"spearman_pci_vs_truth_density": rho(pci, dens), "spearman_pci_vs_truth_pci": rho(pci, tpci),
+            "spearman_total_deduct_vs_truth_density_damaged": rho(tdd[dens > 0], dens[dens > 0]),
+            "order_violations": worse, "monotone": not worse,
+            "clean_above_damaged": bool(len(clean) and len(damaged) and clean.min() > damaged.max())}
 
 
 def main() -> None:
@@ -244,6 +367,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("PAVEMAP_BENCH_DATA", "/tmp/pavemap-bench")))
     ap.add_argument("--results", type=Path, default=RESULTS)
+    ap.add_argument("--no-segments", action="store_true", help="leave out the clean-then-damaged segment row")
     args = ap.parse_args()
     t0 = time.perf_counter()
     previous = previous_seconds(args.results)  # a rerun resumes the mesh: keep the last run's stage seconds
@@ -264,6 +388,8 @@ def main() -> None:
             inst, on_truth, alt, secs = map_and_measure(seq_dir, args.data / f"maint-run-{preset}-{depth}",
                                                         preset, args.device)
             cmp = compare(inst, on_truth, seq_dir)
+            for r in cmp["rows"]:
+                r["preset"] = preset
             rows_all += cmp["rows"]
             alt_rows = compare(alt, alt, seq_dir)["rows"]
             rows_alt += alt_rows
@@ -275,9 +401,14 @@ def main() -> None:
             print(depth, preset, json.dumps({k: v for k, v in per[preset].items() if k != "pairs"}), flush=True)
         pooled = summarise(rows_all)
         alt_pooled = summarise(rows_alt)
+        pooled["severity_by_class"] = severity_by_class(rows_all)
+        print_severity(depth, pooled["severity_by_class"])
         out["results"][depth] = {"pooled": {**pooled, "meets": meets(pooled)},
                                  "pooled_footprint_association": {**alt_pooled, "meets": meets(alt_pooled)},
                                  "presets": per}
+    if not args.no_segments:
+        out["segments"] = segment_row(args.data, args.device)
+        print("segments", json.dumps(out["segments"]), flush=True)
     out["uptime_end"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     out["seconds_total"] = round(time.perf_counter() - t0, 1)
     write_results(args.results, out)

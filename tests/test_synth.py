@@ -190,6 +190,30 @@ def test_cli_synth(tmp_path):
     assert res.exit_code != 0
 
 
+def test_cli_synth_clean_then_damaged(tmp_path):
+    """`pavemap synth --defect-free-until M`: no defect centred in the first M metres along the drive (the
+    clean stretch of a clean-then-damaged drive); the same world without it has defects there."""
+    from typer.testing import CliRunner
+
+    from pavemap.cli import app
+
+    out = tmp_path / "half"
+    res = CliRunner().invoke(app, ["synth", "--preset", "kitti-like", "--seed", "2", "--frames", "2", "--scale",
+                                   "0.1", "--depth", "none", "--defect-density", "60", "--defect-free-until", "30",
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    world = load_world(out)
+    assert world.params.defect_free_until_m == 30.0
+    truth = load_truth_defects(out)
+    xy = np.array([[t.properties["x_m"], t.properties["y_m"]] for t in truth])
+    s, _ = world.st_at(xy[:, 0], xy[:, 1])
+    assert len(truth) >= 10 and s.min() >= world.params.road_before + 30.0 - 0.5  # st raster: 0.5 m cells
+    everywhere = make_world("kitti-like", 2, frames=2, defect_density=60.0)
+    s_all = np.array([everywhere.st_at(np.array([d["centre"][0]]), np.array([d["centre"][1]]))[0][0]
+                      for d in everywhere.defects])
+    assert (s_all < world.params.road_before + 30.0 - 0.5).sum() >= 5
+
+
 def test_synth_on_a_missing_gpu_is_a_clear_error(tmp_path, monkeypatch):
     import torch
     from typer.testing import CliRunner

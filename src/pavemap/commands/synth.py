@@ -20,6 +20,9 @@ def register(app: typer.Typer) -> None:
         scale: float | None = typer.Option(None, help="Image scale (default: 0.5 nuscenes-like, 1.0 kitti-like)."),
         depth: str = typer.Option("sparse", help="Depth maps: none, sparse (LiDAR-like) or dense."),
         defect_density: float | None = typer.Option(None, help="Defects per 100 m of road (default 25)."),
+        defect_free_until: float | None = typer.Option(
+            None, "--defect-free-until", help="No defect centred before this many metres along the drive from the "
+            "first frame: a clean stretch, then the damaged rest (e.g. half the drive; default: defects everywhere)."),
         shadows: bool = typer.Option(True, help="Cast shadows of objects on the ground."),
         overwrite: bool = typer.Option(False, help="Replace OUT if it exists."),
         device: str = typer.Option("cpu", help=f"Render device: {DEVICE_HELP}."),
@@ -30,6 +33,6 @@ def register(app: typer.Typer) -> None:
 
         seq = synthesize(out, preset=preset, seed=seed, frames=frames, scale=scale, depth=depth,
                          overwrite=overwrite, device=device, threads=threads, defect_density=defect_density,
-                         shadows=shadows)
+                         defect_free_until_m=defect_free_until, shadows=shadows)
         views = sum(len(f.views) for f in seq.frames)
         typer.echo(f"{len(seq.frames)} frames, {views} views -> {out}")
