@@ -213,8 +213,9 @@ def summarise(rows: list[dict]) -> dict:
     sev = [r["severity_level"] == r["truth_severity_level"] for r in rows if "severity_level" in r]
     notes: dict[str, int] = {}
     for r in pits:
-        if not r.get("measurable"):
-            notes[r.get("measure_note") or "?"] = notes.get(r.get("measure_note") or "?", 0) + 1
+        if not r.get("measurable"):  # why, without the fallback's own value ("; severity from area_m2 = 0.42")
+            why = (r.get("measure_note") or "?").split("; severity from")[0]
+            notes[why] = notes.get(why, 0) + 1
     return {
         "potholes_matched": len(pits), "potholes_measured": len(meas), "not_measurable": notes,
         "depth_abs_err_mm": {"median": _q(dep, 50), "p90": _q(dep, 90)},
