@@ -61,13 +61,6 @@ def test_fit_is_robust_to_mismatched_points_and_refuses_too_few():
 
 def test_anchoring_removes_a_drift_of_the_trained_surface():
     """Training lifted the surface by 3 cm: the correction fitted to the points' residuals takes it back."""
-    from dataclasses import dataclass
-
-    @dataclass
-    class _Points:  # what anchor_correction reads of GroundPoints
-        points: np.ndarray
-        observable: bool = True
-
     rng = np.random.default_rng(2)
     spec = GridSpec(-5.0, -8.0, 0.1, 1101, 161)
     X, Y = np.meshgrid(spec.x0 + np.arange(spec.nx) * spec.res, spec.y0 + np.arange(spec.ny) * spec.res)
@@ -77,7 +70,7 @@ def test_anchoring_removes_a_drift_of_the_trained_surface():
     traj = np.stack([np.arange(0.0, 101.0, 1.0), np.zeros(101)], 1)
     vxy = np.stack([X.ravel(), Y.ravel()], 1)
     drifted = truth + 0.03 + 0.01 * np.sin(X / 30.0)
-    corr = anchor_correction(_Points(pts), spec, drifted, vxy, traj)
+    corr = anchor_correction(pts, spec, drifted, vxy, traj)
     assert corr is not None and corr.shape == (len(vxy),) and abs(np.median(corr) + 0.03) < 0.01  # the 3 cm lift
     fixed = drifted.ravel() + corr
     inner = (vxy[:, 0] > 2) & (vxy[:, 0] < 98)

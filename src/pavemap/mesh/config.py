@@ -100,9 +100,9 @@ class MeshConfig:
     ground_points_corners: int = 400  # corners per reference view (more: denser points, longer matching)
     # The run's self-check against the ground points: a median residual or a robust RMS beyond these (m)
     # makes the surface "not trustworthy"; a smaller observed fraction of the mesh's vertices is a warning.
-    # After training, fit the ground points' residuals to the surface in road coordinates and add them
-    # (pavemap.mesh.geometry.anchor_correction): training drifts a surface by a few cm where the photometric
-    # loss cannot tell heights apart.
+    # After training, fit the residuals of the height measurements (ground points, or the depth pixels where
+    # depth is given) to the surface in road coordinates and add them (pavemap.mesh.geometry.anchor_correction):
+    # training drifts a surface by a few cm where the photometric loss cannot tell heights apart.
     anchor_to_points: bool = True
     # Every n-th ground point is held out of the surface (initial relief, depth loss, anchoring) and checks it
     # (0: check against the points the surface was fitted to, which cannot see a bias).

@@ -173,10 +173,18 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
 
 @torch.no_grad()
 def _anchor(fit: Fit, run: _Run) -> None:
-    """Move the trained surface back onto the ground points (:func:`pavemap.mesh.geometry.anchor_correction`)."""
-    m = fit.model
+    """Move the trained surface back onto its height measurements (:func:`pavemap.mesh.geometry.anchor_correction`):
+    the depth pixels where the sequence has depth, otherwise the fitted ground points (never the held-out ones,
+    which check the result)."""
+    from pavemap.mesh.init_surface import depth_points
+
+    m, gp = fit.model, run.geo.gp
+    if run.geo.source == "depth" and fit.pool.depth is not None:
+        points = depth_points(fit.pool, n_max=200000, seed=fit.cfg.seed)
+    else:
+        points = gp.points if gp is not None and gp.observable else None
     h = m.dense_heights(float("nan")).cpu().numpy()
-    corr = anchor_correction(run.geo.gp, run.data.grid.spec, h, run.data.grid.vertex_xy(), run.data.traj[:, :2])
+    corr = anchor_correction(points, run.data.grid.spec, h, run.data.grid.vertex_xy(), run.data.traj[:, :2])
     if corr is not None:
         m.z_base.add_(torch.as_tensor(corr, dtype=m.z_base.dtype, device=m.z_base.device))
 
