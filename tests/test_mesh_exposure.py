@@ -81,3 +81,11 @@ def test_exposed_bake_undoes_per_view_exposure(seq):
     assert 0.6 < ratio < 0.75, ratio
     assert err(fitted) < 0.5 * err(plain), (err(fitted), err(plain))
     assert np.isfinite(err(fitted))
+
+
+def test_exposed_bake_of_a_surface_no_pixel_reaches(seq):
+    g, _, heights = _true_surface(seq)
+    pool = _all_views_pool(seq)
+    far = _field(g, heights - 100.0)  # 100 m below every ray's reach
+    rgb, support, coloured, e = bake_exposed(far, pool, pool.T, 60.0, exposure_rounds=2)
+    assert e is None and float(support.sum()) == 0.0 and not coloured.any()

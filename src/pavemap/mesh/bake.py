@@ -99,7 +99,7 @@ def bake_exposed(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dis
     hits = _hits(surface, pool, T, max_dist, batch)
     exposure = None
     rgb, support = _mean_colours(hits, ny * nx, exposure, heights.device)
-    for _ in range(exposure_rounds):
+    for _ in range(exposure_rounds if hits else 0):  # no pixel on the surface: nothing to fit
         exposure = _fit_exposure(hits, rgb, len(pool.keys))
         rgb, support = _mean_colours(hits, ny * nx, exposure, heights.device)
     seen = support > 0
