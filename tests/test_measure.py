@@ -295,6 +295,24 @@ def test_crack_length_is_the_footprints_longer_midline(a, b):
     assert diag > 1.05 * true  # the case tells the two measures apart
 
 
+def test_a_box_near_the_image_edge_gives_no_footprint():
+    """A box 7 px from the edge of a 640 px image may be cut off (2 % of the side is the margin); 20 px in, it
+    measures. A cut crack measured short is what decided a severity level wrongly on the maintenance bench."""
+    from pavemap.fuse.footprint import detection_footprints
+    from pavemap.types import Camera, Detection, Frame, Sequence, View
+
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+    T[2, 3] = 1.5
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    seq = Sequence("t", [], {"cam": Camera("cam", 640, 480, K)}, [Frame(0, 0.0, {"cam": View("cam", "0.png", T)})])
+    hit = np.array([[6.0, 2.0, 0.0]] * 2)
+    dets = [Detection(0, "cam", (x0, 360.0, 200.0, 380.0), 1, 0.9) for x0 in (7.0, 20.0)]
+    area, length, ok = detection_footprints(seq, dets, hit)
+    assert not ok[0] and np.isnan(length[0]) and ok[1] and length[1] > 0
+    assert detection_footprints(seq, dets[:1], hit[:1], border_frac=0.0)[2][0]  # the old 2 px margin passed it
+
+
 def test_footprint_sizes_become_the_defect_sizes():
     """area_m2 of a pothole / patch and crack_length_m of a crack come from the detections' footprints; the
     fused vertices' area stays as mapped_area_m2."""

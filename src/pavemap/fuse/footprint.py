@@ -16,8 +16,10 @@ Its size comes from the footprints instead: per instance, the median over its de
   widening, the mid-line its average. On the maintenance bench's 16 matched cracks (median |error|, no depth):
   longer diagonal 21 %, along / across-road extent by class 18 %, long side 15 %, longer mid-line 14 %.
 
-Boxes that touch the image border (the defect runs out of the view) or have a corner above the horizon give
-no footprint.
+Boxes within 2 % of the image border (the defect may run out of the view: boxes jitter by a few pixels) or
+with a corner above the horizon give no footprint. A 2 px margin let a cut-off 2.18 m crack measure 1.21 m;
+with 2 % the maintenance bench's severity agreement went 0.84 -> 0.89 / 0.87 (no depth / sparse), area
+25.1 -> 24.0 / 23.5 -> 21.9 %, crack length 14.4 -> 12.6 / 14.7 -> 13.3 %.
 """
 
 from __future__ import annotations
@@ -63,10 +65,12 @@ def midline_length(q: torch.Tensor) -> torch.Tensor:
     return torch.maximum((mid[:, 0] - mid[:, 2]).norm(dim=1), (mid[:, 1] - mid[:, 3]).norm(dim=1))
 
 
-def detection_footprints(seq: Sequence, dets: list[Detection], hits: np.ndarray, border_px: float = 2.0
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def detection_footprints(seq: Sequence, dets: list[Detection], hits: np.ndarray, border_px: float = 2.0,
+                         border_frac: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per detection: footprint area (K,) m², its longer mid-line (K,) m (:func:`midline_length`) and ok (K,)
-    bool, on the plane through its surface point ``hits`` (K, 3) (nan: no footprint)."""
+    bool, on the plane through its surface point ``hits`` (K, 3) (nan: no footprint). A box closer to the image
+    edge than ``border_px`` or ``border_frac`` of the image side may be cut off: boxes jitter by a few pixels,
+    and a 2.18 m crack cut by the edge 7 px away measured 1.21 m on the maintenance bench."""
     n = len(dets)
     if n == 0:
         return np.zeros(0), np.zeros(0), np.zeros(0, bool)
@@ -80,8 +84,8 @@ def detection_footprints(seq: Sequence, dets: list[Detection], hits: np.ndarray,
     W = np.array([seq.cameras[d.camera].width for d in dets], dtype=np.float64)
     H = np.array([seq.cameras[d.camera].height for d in dets], dtype=np.float64)
     b = boxes.numpy()
-    inside = ((b[:, 0] > border_px) & (b[:, 1] > border_px) & (b[:, 2] < W - 1 - border_px)
-              & (b[:, 3] < H - 1 - border_px))
+    mx, my = np.maximum(border_px, border_frac * W), np.maximum(border_px, border_frac * H)
+    inside = (b[:, 0] > mx) & (b[:, 1] > my) & (b[:, 2] < W - 1 - mx) & (b[:, 3] < H - 1 - my)
     good = ok.numpy() & inside & np.isfinite(hits).all(1)
     return np.where(good, area.numpy(), np.nan), np.where(good, length.numpy(), np.nan), good
 
