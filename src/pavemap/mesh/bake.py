@@ -103,11 +103,11 @@ def bake_exposed(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dis
         exposure = _fit_exposure(hits, rgb, len(pool.keys))
         rgb, support = _mean_colours(hits, ny * nx, exposure, heights.device)
     seen = support > 0
+    cols = [exposure_model.compensate(h.c8.double() / 255.0, exposure, h.view) for h in hits] if sharpen_iters else []
     for _ in range(sharpen_iters):
         upd = torch.zeros(ny * nx, 3, dtype=torch.float64, device=heights.device)
-        for h in hits:
+        for h, col in zip(hits, cols, strict=True):
             w = h.w.double()
-            col = exposure_model.compensate(h.c8.double() / 255.0, exposure, h.view)
             r = col - (w[..., None] * rgb[h.vid]).sum(1)  # (M, 3) residuals
             upd.index_add_(0, h.vid.reshape(-1), (w[..., None] * r[:, None, :]).reshape(-1, 3))
         rgb = torch.where(seen[:, None], rgb + upd / support.clamp_min(1e-12)[:, None], rgb)
