@@ -32,12 +32,14 @@ def register(app: typer.Typer) -> None:
         from pavemap.io.sequence import read_sequence
         from pavemap.mesh import reconstruct as run
         from pavemap.mesh.checkpoint import CHECKPOINT
+        from pavemap.mesh.segments import SEGMENTS_DIR
 
         s = read_sequence(seq)
         rc = opt.resolve_config(s, config, sets, {"device": device, "mesh.epochs": epochs, "mesh.seed": seed,
                                                   "mesh.resume": resume, "mesh.pose_refine": pose_refine})
         cfg = dataclasses.replace(rc.mesh, device=rc.device)
-        with warnings.catch_warnings(record=True) as caught, undo_on_failure(out, keep=(CHECKPOINT,)):
+        keep = (CHECKPOINT, f"{SEGMENTS_DIR}/")  # what a stopped run resumes from
+        with warnings.catch_warnings(record=True) as caught, undo_on_failure(out, keep=keep):
             warnings.simplefilter("always")
             _, m = run(s, out, cfg, progress=True)
         for w in caught:

@@ -23,6 +23,10 @@ def register(app: typer.Typer) -> None:
         defect_free_until: float | None = typer.Option(
             None, "--defect-free-until", help="No defect centred before this many metres along the drive from the "
             "first frame: a clean stretch, then the damaged rest (e.g. half the drive; default: defects everywhere)."),
+        trajectory: Path | None = typer.Option(
+            None, "--trajectory", help="Drive along this trajectory: a KITTI odometry pose file (12 numbers per "
+            "line, e.g. kitti-odometry-poses/00.txt); FRAMES poses from --trajectory-start (default: all)."),
+        trajectory_start: int = typer.Option(0, "--trajectory-start", help="First pose of --trajectory used."),
         shadows: bool = typer.Option(True, help="Cast shadows of objects on the ground."),
         overwrite: bool = typer.Option(False, help="Replace OUT if it exists."),
         device: str = typer.Option("cpu", help=f"Render device: {DEVICE_HELP}."),
@@ -31,8 +35,15 @@ def register(app: typer.Typer) -> None:
         """Render a synthetic road world (images, semantics, depth, truth) into a sequence folder."""
         from pavemap.synth import synthesize
 
+        path = None
+        if trajectory is not None:
+            from pavemap.synth.trajectory import read_trajectory
+
+            path = read_trajectory(trajectory, frames, trajectory_start)
+            frames = len(path)
+            path = [[round(float(v), 4) for v in row] for row in path]
         seq = synthesize(out, preset=preset, seed=seed, frames=frames, scale=scale, depth=depth,
                          overwrite=overwrite, device=device, threads=threads, defect_density=defect_density,
-                         defect_free_until_m=defect_free_until, shadows=shadows)
+                         defect_free_until_m=defect_free_until, shadows=shadows, path=path)
         views = sum(len(f.views) for f in seq.frames)
         typer.echo(f"{len(seq.frames)} frames, {views} views -> {out}")

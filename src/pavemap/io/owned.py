@@ -204,7 +204,8 @@ def note_written(path: str | os.PathLike) -> None:
 def undo_on_failure(out: str | os.PathLike, keep: tuple[str, ...] = ()) -> Iterator[None]:
     """For a command writing several files into a folder it does not claim: when the body fails, delete
     the files it *created* there (files that existed before are left alone), except names in ``keep``
-    (e.g. a checkpoint to resume from), so a half-written result does not look complete."""
+    (e.g. a checkpoint to resume from; an entry ending in ``/`` keeps a sub-folder, e.g. the finished
+    segments of a long drive), so a half-written result does not look complete."""
     out = Path(out)
     before = set(_walk(out)) if out.is_dir() else set()
     try:
@@ -212,7 +213,7 @@ def undo_on_failure(out: str | os.PathLike, keep: tuple[str, ...] = ()) -> Itera
     except BaseException:
         with contextlib.suppress(OSError):
             for rel in set(_walk(out)) - before if out.is_dir() else ():
-                if Path(rel).name not in keep:
+                if Path(rel).name not in keep and not any(k.endswith("/") and rel.startswith(k) for k in keep):
                     (out / rel).unlink(missing_ok=True)
         raise
 

@@ -145,6 +145,16 @@ class MeshConfig:
     bake_fill_sigma: float = 1.0  # cells: vertices no training pixel hits take their neighbours' colour
     height_refresh_steps: int = 16  # steps between full-grid height re-evaluations used by the march
     resume: bool = True  # continue from DIR/checkpoint.pt when it matches
+    # Long drives (pavemap.mesh.segments): a path longer than 1.5 x ``segment_m`` is cut into segments of about
+    # this length (m of path) overlapping by ``segment_overlap_m``, each reconstructed from its own views only
+    # and blended into one surface; memory then depends on the segment, not the drive (0: one piece).
+    segment_m: float = 150.0
+    segment_overlap_m: float = 20.0
+    # Frames of another pass (a loop, a U-turn) within this distance of a segment's path join its views, so that
+    # revisited road is one surface seen by both passes.
+    segment_revisit_m: float = 10.0
+    # A standing vehicle: frames within this distance (m) of the last frame kept add nothing but memory.
+    segment_min_step_m: float = 0.1
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
 
     def __post_init__(self) -> None:
@@ -178,7 +188,7 @@ class MeshConfig:
             _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
                      "pose_align_rounds", "exposure_rounds", "seed", "init_fine_cell_m", "check_holdout_every",
-                     "view_range_m",
+                     "view_range_m", "segment_m", "segment_overlap_m", "segment_revisit_m", "segment_min_step_m",
                      "moving_cutoff", "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height", "lr_pose", "lr_pose_rot",
                      "w_rgb", "w_sem", "w_depth", "w_smooth"):
             _require(self, name, lambda v: v >= 0, "must be >= 0")

@@ -47,7 +47,7 @@ class MeshGrid:
         return np.stack([g.x0 + (vid % g.nx) * g.res, g.y0 + (vid // g.nx) * g.res], 1)
 
 
-def _dense_polyline(t: np.ndarray, step: float) -> np.ndarray:
+def dense_polyline(t: np.ndarray, step: float) -> np.ndarray:
     """(F, 2) polyline -> (M, 2) points along it at most ``step`` apart (its vertices included)."""
     pts = [t[:1]]
     for a, b in zip(t[:-1], t[1:], strict=True):
@@ -66,7 +66,7 @@ def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float,
     """
     t = np.asarray(trajectory_xy, dtype=np.float64).reshape(-1, 2)
     # Rasterise the polylines densely (half-cell spacing), then an exact Euclidean distance transform.
-    p = np.concatenate([_dense_polyline(q, 0.5 * res) for q in
+    p = np.concatenate([dense_polyline(q, 0.5 * res) for q in
                         (t, *(np.asarray(e, dtype=np.float64).reshape(-1, 2) for e in extra_paths))])
     spec = GridSpec.covering(p.min(0) - crop_m, p.max(0) + crop_m, res)
     lo = np.array([spec.x0, spec.y0])

@@ -15,7 +15,7 @@ from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
 from pavemap.mesh.model import MeshGrid, RoadMeshModel, build_grid
 from pavemap.mesh.render import view_rays
-from pavemap.types import SemanticClass, Sequence
+from pavemap.types import SemanticClass, Sequence, View
 
 Warn = Callable[[str], None]
 
@@ -43,11 +43,19 @@ class TrainData:
         return [c.id for c in self.classes]
 
 
-def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) -> TrainData:
-    """Split the frames, drop views without a finite pose, build the grid and load the pixel pools."""
+def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn,
+            heldout_frames: set[int] | None = None) -> TrainData:
+    """Split the frames, drop views without a finite pose, build the grid and load the pixel pools.
+
+    ``heldout_frames``: frame indices to hold out instead of every ``holdout_every``-th position (a segment of a
+    long drive holds out the drive's own choice, so that no held-out frame trains a neighbouring segment)."""
     if not seq.frames:
         raise PavemapError(f"sequence {seq.name!r} has no frames")
     train_pos, held_pos = split_frames(len(seq.frames), cfg.holdout_every, cfg.frame_stride)
+    if heldout_frames is not None:
+        held_pos = [p for p, f in enumerate(seq.frames) if f.index in heldout_frames]
+        held_set = set(held_pos)
+        train_pos = [p for p in range(len(seq.frames)) if p not in held_set][::cfg.frame_stride]
     if cfg.holdout_every > 0 and not held_pos:
         warn("fewer than 2 frames: no frame held out; metrics are measured on the training views")
     train_views, dropped = finite_views(seq, train_pos)
@@ -65,16 +73,7 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) ->
     for ch, c in enumerate(classes):
         channel_lut[c.id] = ch
 
-    # Grid from the trajectory of the views used.
-    centres: dict[int, list[np.ndarray]] = {}
-    for fi, v in train_views + held_views:
-        centres.setdefault(fi, []).append(v.T_world_cam[:3, 3])
-    traj = np.array([np.mean(centres[k], axis=0) for k in sorted(centres)])
-    first, last = min(centres), max(centres)
-    ends = [(0 if fi == first else -1, v) for fi, v in train_views + held_views if fi in (first, last)]
-    grid = build_grid(traj[:, :2], cfg.resolution, cfg.crop_m, view_paths(ends, traj[:, :2], cfg.view_range_m))
-    if grid.vertices < 3 or grid.faces == 0:
-        raise PavemapError("the trajectory crop holds no triangle; check crop_m and resolution")
+    grid, traj = trajectory_grid(train_views + held_views, cfg, warn)
 
     pool = build_pool(seq, train_views, cfg.render_scale, channel_lut, use_sem, use_depth).to(device)
     eval_views = held_views if held_views else train_views
@@ -82,6 +81,43 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn) ->
     if use_sem and int((epool.channel >= 0).sum()) == 0:
         warn("held-out views carry no labelled pixels: semantic accuracy is undefined")
     return TrainData(pool, epool, grid, traj, classes, use_sem, use_depth, bool(held_views))
+
+
+def trajectory_grid(views: list[tuple[int, View]], cfg: MeshConfig, warn: Warn | None = None
+                    ) -> tuple[MeshGrid, np.ndarray]:
+    """The grid and its crop around the trajectory of ``views`` ((frame index, View) pairs) and the road the
+    end frames look at; also the trajectory (F, 3), the mean camera centre of each frame in index order."""
+    centres: dict[int, list[np.ndarray]] = {}
+    for fi, v in views:
+        centres.setdefault(fi, []).append(v.T_world_cam[:3, 3])
+    traj = np.array([np.mean(centres[k], axis=0) for k in sorted(centres)])
+    first, last = min(centres), max(centres)
+    ends = [(0 if fi == first else -1, v) for fi, v in views if fi in (first, last)]
+    pieces = path_pieces(traj[:, :2], sorted(centres), warn)
+    grid = build_grid(pieces[0], cfg.resolution, cfg.crop_m,
+                      [*pieces[1:], *view_paths(ends, traj[:, :2], cfg.view_range_m)])
+    if grid.vertices < 3 or grid.faces == 0:
+        raise PavemapError("the trajectory crop holds no triangle; check crop_m and resolution")
+    return grid, traj
+
+
+def path_pieces(traj_xy: np.ndarray, frame_ids: list[int], warn: Warn | None = None,
+                min_gap_m: float = 5.0, gap_factor: float = 5.0) -> list[np.ndarray]:
+    """The trajectory (F, 2) cut where consecutive frames lie more than ``max(min_gap_m, gap_factor x the
+    median step)`` apart: dropped frames, or the passes of a long drive's segment. The crop follows each piece,
+    not a straight line across the gap (road no camera drove past). Each gap is named through ``warn``."""
+    t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    if len(t) < 3:
+        return [t]
+    step = np.linalg.norm(np.diff(t, axis=0), axis=1)
+    moving = step[step > 1e-3]
+    limit = max(min_gap_m, gap_factor * float(np.median(moving))) if moving.size else math.inf
+    cuts = np.flatnonzero(step > limit)
+    if warn is not None:
+        for c in cuts[np.diff(np.asarray(frame_ids))[cuts] == 1]:  # gaps between consecutive frame indices
+            warn(f"frames {frame_ids[c]} and {frame_ids[c + 1]} lie {step[c]:.0f} m apart (dropped frames, or a "
+                 "jump in the poses): the road between them is not reconstructed")
+    return np.split(t, cuts + 1)
 
 
 def _travel(traj_xy: np.ndarray, end: int, span_m: float = 5.0) -> np.ndarray | None:

@@ -48,18 +48,28 @@ from pavemap.types import Sequence
 LOSS_KEYS = ("loss", "rgb", "sem", "depth", "smooth")
 
 
-def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool = True
-                ) -> tuple[RoadMesh, dict]:
+def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool = True,
+                heldout_frames: set[int] | None = None) -> tuple[RoadMesh, dict]:
     """Stage 1 on a sequence: returns the mesh and its metrics; writes outputs to ``out_dir`` when given.
 
     Metrics: psnr (held-out road pixels), sem_acc, height_rmse (with synthetic truth), seconds,
-    vertices, faces, device, history (per epoch), warnings.
+    vertices, faces, device, history (per epoch), warnings. A drive longer than 1.5 ``config.segment_m``
+    is reconstructed in segments (:func:`pavemap.mesh.segments.reconstruct_segmented`); ``heldout_frames``
+    (frame indices held out instead of every ``holdout_every``-th) always gives one piece.
     """
+    from pavemap.mesh.segments import needs_segments, reconstruct_segmented, skip_standing
+
+    if heldout_frames is None:
+        seq, note = skip_standing(seq, config)
+        if note:
+            warnings.warn(note, stacklevel=2)
+        if needs_segments(seq, config):
+            return reconstruct_segmented(seq, out_dir, config, progress)
     threads_before = torch.get_num_threads()
     if config.threads:
         torch.set_num_threads(int(config.threads))
     try:
-        return _reconstruct(seq, out_dir, config, progress)
+        return _reconstruct(seq, out_dir, config, progress, heldout_frames)
     finally:
         torch.set_num_threads(threads_before)
 
@@ -88,7 +98,8 @@ class _Run:
         warnings.warn(msg, stacklevel=3)
 
 
-def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress: bool) -> tuple[RoadMesh, dict]:
+def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress: bool,
+                 heldout_frames: set[int] | None) -> tuple[RoadMesh, dict]:
     from pavemap.mesh.outputs import write_outputs
 
     t_start = time.perf_counter()
@@ -100,7 +111,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
         notes.append(msg)
         warnings.warn(msg, stacklevel=3)
 
-    data = prepare(seq, cfg, device, warn)
+    data = prepare(seq, cfg, device, warn, heldout_frames)
     geo = find_geometry(seq, data, cfg, warn)
     if geo.observable and cfg.ground_points_use in ("depth", "both"):
         data.pool, data.use_depth = add_point_depth(data.pool, geo.gp, cfg.render_scale), True

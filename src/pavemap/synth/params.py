@@ -107,6 +107,9 @@ class WorldParams:
     shadows: bool = True
     sun_azimuth_deg: float = 215.0
     sun_elevation_deg: float = 42.0
+    # A given trajectory (pavemap.synth.trajectory): the camera centres (F, 3), z up, origin at the first; the
+    # road follows it and ``frames`` is its length (None: a generated road at ``speed``)
+    path: list | None = None
 
     def validate(self) -> None:
         if self.preset not in PRESETS:
@@ -125,6 +128,12 @@ class WorldParams:
             raise PavemapError(f"class_mix needs 4 non-negative weights, got {self.class_mix}")
         if not 0 <= self.ego_lane < self.lanes:
             raise PavemapError(f"ego_lane must be 0..{self.lanes - 1}")
+        if self.path is not None:
+            a = np.asarray(self.path, dtype=float)
+            if a.ndim != 2 or a.shape[1] != 3 or len(a) < 2 or not np.all(np.isfinite(a)):
+                raise PavemapError("path must be at least 2 finite (x, y, z) camera centres")
+            if len(a) != self.frames:
+                raise PavemapError(f"frames ({self.frames}) must equal the trajectory's poses ({len(a)})")
         if self.defect_free_until_m is not None and not np.isfinite(self.defect_free_until_m):
             raise PavemapError(f"defect_free_until_m must be a finite number or None, got {self.defect_free_until_m}")
 
@@ -134,6 +143,9 @@ class WorldParams:
 
     @property
     def road_length(self) -> float:
+        if self.path is not None:
+            xy = np.asarray(self.path, dtype=float)[:, :2]
+            return self.road_before + float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) + self.road_after
         ego = self.speed * max(self.frames - 1, 0) / self.hz
         return self.road_before + ego + self.road_after
 

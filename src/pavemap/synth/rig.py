@@ -83,6 +83,11 @@ def vehicle_poses(world: World, rng: np.random.Generator) -> tuple[np.ndarray, n
     ph = rng.uniform(0, 6.28)
     t = lane_t + 0.15 * np.sin(s / 23.0 + ph)
     dt_ds = 0.15 / 23.0 * np.cos(s / 23.0 + ph)
+    if p.path is not None:  # a given trajectory: its own spacing (stops, gaps) in the ego lane's centre
+        from pavemap.synth.trajectory import path_frames_s
+
+        s = np.interp(path_frames_s(np.asarray(p.path)), world.cl_ego_u, world.cl_s)
+        t, dt_ds = np.full(F, lane_t), np.zeros(F)
     xy = world.xy_of_st(s, t)
     yaw = world.heading_at(s) + np.arctan(dt_ds)
     poses = np.zeros((F, 4, 4))

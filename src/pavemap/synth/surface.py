@@ -140,14 +140,20 @@ def markings(p: WorldParams, s: torch.Tensor, t: torch.Tensor, fp: torch.Tensor)
 
 
 def profile_height(p: WorldParams, tiles: torch.Tensor, kappa: torch.Tensor, cl_s0: float,
-                   x: torch.Tensor, y: torch.Tensor, s: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """Analytic height without potholes: grade + vertical curve + cross-section + small unevenness."""
+                   x: torch.Tensor, y: torch.Tensor, s: torch.Tensor, t: torch.Tensor,
+                   base: tuple[torch.Tensor, tuple] | None = None) -> torch.Tensor:
+    """Analytic height without potholes: grade + vertical curve (or, along a given trajectory, the road's
+    height at the place from ``base``: the flat raster and its bilinear_t grid) + cross-section + small
+    unevenness."""
     a = t.abs()
     w2 = p.width / 2
     k = ((s - cl_s0) / CENTRELINE_DS).round().clamp(0, kappa.numel() - 1).int()
     # superelevation: the road banks into turns (inner side lower), capped
     e = (kappa.index_select(0, k) * 3.0).clamp(-p.max_superelevation, p.max_superelevation)
-    z = p.grade * s + p.vert_amp * torch.sin(2 * math.pi * s / p.vert_wavelength)
+    if base is None:
+        z = p.grade * s + p.vert_amp * torch.sin(2 * math.pi * s / p.vert_wavelength)
+    else:
+        z = bilinear_t(base[0], base[1], x, y)
     road = p.crown * (1 - (a / w2) ** 2) + e * t
     edge = e * t.sign() * w2
     sw = torch.where(t > 0, torch.full_like(t, p.sidewalk_left), torch.full_like(t, p.sidewalk_right))

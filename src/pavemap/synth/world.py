@@ -65,6 +65,10 @@ class World:
     sphere_kind: np.ndarray  # (Ns,) int: index into OBJECT_KINDS
     noise_tiles: np.ndarray  # (T, 128, 128) float32 value-noise tiles
     sun: np.ndarray  # (3,) unit vector towards the sun
+    # along a given trajectory (params.path): the road's height by place, and the ego path length per sample
+    base_grid: GridSpec | None = None
+    base: np.ndarray | None = None  # (ny, nx) float32
+    cl_ego_u: np.ndarray | None = None  # (Nc,)
     _cache: dict = field(default_factory=dict, repr=False)
 
     # -- cheap numpy queries (used for placement, poses and tests) ---------------------------
@@ -136,25 +140,88 @@ def make_world(preset: str = "nuscenes-like", seed: int = 0, threads: int | None
 
 def _build_world(p: WorldParams) -> World:
     rng = _rngs(p.seed)
-    cl_s, cl_xy, cl_theta, cl_kappa = _centreline(p, rng["road"])
+    ego_u = None
+    if p.path is not None:
+        from pavemap.synth.trajectory import path_centreline
+
+        cl_s, cl_xy, cl_theta, cl_kappa, ego_u = path_centreline(p)
+    else:
+        cl_s, cl_xy, cl_theta, cl_kappa = _centreline(p, rng["road"])
     tiles = rng["tex"].random((6, 128, 128)).astype(np.float32)
-    st_grid, st = _st_raster(cl_s, cl_xy, cl_theta, margin=45.0)
+    st_grid, st = _st_raster(cl_s, cl_xy, cl_theta, margin=45.0, tie_m=0.0 if p.path is None else 1.5)
     hgrid = _grid_around(cl_xy, margin=28.0, res=HEIGHT_RES)
     w = World(
         params=p, cl_s=cl_s, cl_xy=cl_xy, cl_theta=cl_theta, cl_kappa=cl_kappa, st_grid=st_grid, st=st,
         height_grid=hgrid, height=np.zeros((hgrid.ny, hgrid.nx), np.float32),
         shadow_grid=_grid_around(cl_xy, margin=28.0, res=SHADOW_RES), shadow=np.zeros((1, 1), np.float32),
         defects=[], decoys=[], boxes=np.zeros((0, 12), np.float32), spheres=np.zeros((0, 8), np.float32),
-        sphere_kind=np.zeros(0, np.int64), noise_tiles=tiles, sun=_sun(p),
+        sphere_kind=np.zeros(0, np.int64), noise_tiles=tiles, sun=_sun(p), cl_ego_u=ego_u,
     )
-    w.defects = make_defects(w, rng["defects"])
+    if p.path is not None:
+        from pavemap.synth.trajectory import base_raster
+
+        ego_xy = w.xy_of_st(cl_s, np.full_like(cl_s, _ego_t(p)))
+        w.base_grid, w.base = base_raster(p, ego_xy, ego_u, hgrid)
+    w.defects = _one_pass(w, make_defects(w, rng["defects"]))
     w.height = _height_raster(w)
     w._cache.clear()
     w.decoys = make_decoys(w, rng["decoys"])
     w.boxes, w.spheres, w.sphere_kind = make_clutter(w, rng["clutter"])
+    if p.path is not None:
+        _off_other_roads(w)
     w.shadow = shadow_raster(w) if p.shadows else np.zeros((1, 1), np.float32)
     w._cache.clear()
     return w
+
+
+def _ego_t(p: WorldParams) -> float:
+    from pavemap.synth.trajectory import ego_lane_t
+
+    return ego_lane_t(p)
+
+
+def _one_pass(w: World, defects: list[dict]) -> list[dict]:
+    """Along a given trajectory, the defects whose whole box lies on the pass they were placed on (a loop's
+    other pass would cut the rest); ids renumbered. Generated roads never come back: all kept."""
+    if w.params.path is None or not defects:
+        return defects
+    from pavemap.synth.trajectory import own_pass
+
+    keep = []
+    for d in defects:
+        x0, y0, x1, y1 = d["aabb"]
+        xs, ys = np.array([x0, x1, x0, x1, d["centre"][0]]), np.array([y0, y0, y1, y1, d["centre"][1]])
+        if own_pass(w, np.tile(np.asarray(d["s_range"], float), (5, 1)), xs, ys).all():
+            keep.append({**d, "id": len(keep)})
+    return keep
+
+
+def _off_other_roads(w: World) -> None:
+    """Along a given trajectory: drop the objects and streaks placed beside one pass that stand on the road of
+    another (a loop, a crossing); their own pass puts them beside its carriageway, never on it."""
+    from pavemap.synth.trajectory import on_some_road
+
+    b = w.boxes
+    if len(b):
+        c, si = np.cos(b[:, 6]), np.sin(b[:, 6])
+        hit = np.zeros(len(b), bool)
+        for ex, ey in ((1, 1), (1, -1), (-1, 1), (-1, -1), (0, 0)):
+            x = b[:, 0] + ex * b[:, 3] * c - ey * b[:, 4] * si
+            y = b[:, 1] + ex * b[:, 3] * si + ey * b[:, 4] * c
+            hit |= on_some_road(w, x, y, -0.6)
+        w.boxes = b[~hit]
+    sp = w.spheres
+    if len(sp):
+        hit = np.zeros(len(sp), bool)
+        for ex, ey in ((1, 0), (-1, 0), (0, 1), (0, -1), (0, 0)):
+            hit |= on_some_road(w, sp[:, 0] + ex * sp[:, 3], sp[:, 1] + ey * sp[:, 3], -0.6)
+        w.spheres, w.sphere_kind = sp[~hit], w.sphere_kind[~hit]
+    kept = []
+    for d in w.decoys:
+        line = np.asarray(d["line"], float)
+        if not on_some_road(w, line[:, 0], line[:, 1], 0.0).any():
+            kept.append(d)
+    w.decoys = kept
 
 
 def _rngs(seed: int) -> dict[str, np.random.Generator]:
@@ -215,14 +282,28 @@ def _grid_around(xy: np.ndarray, margin: float, res: float) -> GridSpec:
     return GridSpec.covering(tuple(xy.min(0) - margin), tuple(xy.max(0) + margin), res)
 
 
-def _st_raster(s: np.ndarray, xy: np.ndarray, theta: np.ndarray, margin: float) -> tuple[GridSpec, np.ndarray]:
-    """Exact nearest-point (s, t) on a coarse raster: KD-tree to the nearest sample, then tangent projection."""
+def _st_raster(s: np.ndarray, xy: np.ndarray, theta: np.ndarray, margin: float,
+               tie_m: float = 0.0) -> tuple[GridSpec, np.ndarray]:
+    """Exact nearest-point (s, t) on a coarse raster: KD-tree to the nearest sample, then tangent projection.
+
+    ``tie_m`` > 0 (a road that comes back): among the samples within ``tie_m`` of the nearest, the earliest
+    (smallest s) owns the point, so that where two passes share the road the first pass owns it everywhere
+    instead of the two alternating by centimetres."""
     from scipy.spatial import cKDTree
 
     g = _grid_around(xy, margin, ST_RES)
     X, Y = g.centres()
     P = np.stack([X.ravel(), Y.ravel()], axis=1)
-    _, k = cKDTree(xy).query(P)
+    tree = cKDTree(xy)
+    if tie_m > 0:
+        kq = min(48, len(xy))
+        k = np.empty(len(P), np.int64)
+        for a in range(0, len(P), 100_000):  # (chunk, 48) candidates at a time: bounded memory
+            dd, kk = tree.query(P[a:a + 100_000], k=kq)
+            cand = np.where(dd <= dd[:, :1] + tie_m, s[kk], np.inf)
+            k[a:a + 100_000] = kk[np.arange(len(kk)), cand.argmin(1)]
+    else:
+        _, k = tree.query(P)
     d = P - xy[k]
     T = np.stack([np.cos(theta[k]), np.sin(theta[k])], axis=1)
     N = np.stack([-T[:, 1], T[:, 0]], axis=1)
@@ -260,6 +341,7 @@ def _to_tensors(w: World, dev: torch.device) -> dict:
         "boxes": ten(w.boxes),
         "spheres": ten(w.spheres),
         "sphere_kind": ten(w.sphere_kind, torch.long),
+        "base": None if w.base is None else (ten(w.base).reshape(-1), _lookup_grid(w.base_grid)),
     }
     out["items"] = item_tables(w, dev)
     return out
@@ -279,7 +361,7 @@ def _height_raster(w: World) -> np.ndarray:
         X = X.reshape(-1)
         Y = Y.reshape(-1)
         s, t = st_lookup(tw, X, Y)
-        z = profile_height(w.params, tw["tiles"], tw["kappa"], tw["cl_s0"], X, Y, s, t)
+        z = profile_height(w.params, tw["tiles"], tw["kappa"], tw["cl_s0"], X, Y, s, t, tw["base"])
         out[j0:j1] = z.reshape(j1 - j0, g.nx).numpy()
     for d in w.defects:
         if d["cls"] != 3:

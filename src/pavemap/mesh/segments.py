@@ -1,0 +1,325 @@
+"""Long drives in segments (issue 17): memory that depends on a segment, not on the drive.
+
+The path is cut by length into segments of about ``mesh.segment_m`` that overlap by ``mesh.segment_overlap_m``;
+frames of other passes over a segment's road (a loop, a U-turn) join its views; frames of a standing vehicle
+are skipped. Each segment is reconstructed from its own frames' pixels only (:func:`reconstruct_segment`, a
+pure function of its inputs, so that segments can run as separate tasks), written to
+``DIR/segments/NNN/`` as soon as it is done (a stopped run resumes at the first segment not written), and
+blended into the drive's surface (:mod:`pavemap.mesh.stitch`). The held-out frames are the drive's, so that
+no held-out frame trains a neighbouring segment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
+
+from pavemap.device import resolve_device
+from pavemap.errors import PavemapError
+from pavemap.io.atomic import atomic_write_json
+from pavemap.io.truth import has_truth_height, read_truth_height
+from pavemap.mesh.config import MeshConfig
+from pavemap.mesh.data import finite_views, split_frames
+from pavemap.mesh.evaluate import truth_metrics
+from pavemap.mesh.model import RoadMesh
+from pavemap.mesh.setup import trajectory_grid
+from pavemap.mesh.stitch import Stitcher, own_path, segment_weights
+from pavemap.types import Sequence
+
+log = logging.getLogger("pavemap")
+SEGMENTS_DIR = "segments"
+TILE_FILE = "tile.json"
+
+
+@dataclass(frozen=True)
+class SegmentPlan:
+    """One segment: ``core`` the path-length interval (m from the first frame) whose road it owns (-inf / inf
+    at the drive's ends); ``own`` the positions (in the sequence's frame list) of its stretch of path, the core
+    and the overlap either side; ``revisit`` those of other passes over its road."""
+
+    index: int
+    core: tuple[float, float]
+    own: tuple[int, ...]
+    revisit: tuple[int, ...] = ()
+
+    @property
+    def positions(self) -> tuple[int, ...]:
+        return tuple(sorted(set(self.own) | set(self.revisit)))
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "core_m": [None if math.isinf(c) else round(c, 3) for c in self.core],
+                "own": [self.own[0], self.own[-1]], "own_frames": len(self.own), "revisit_frames": len(self.revisit)}
+
+
+def path_metres(traj_xy: np.ndarray) -> np.ndarray:
+    """(F,) float64 path length at each position of the trajectory (F, 2), from 0."""
+    t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(t, axis=0), axis=1))])
+
+
+def moving_frames(traj_xy: np.ndarray, min_step_m: float) -> np.ndarray:
+    """(F,) bool: the frames kept when frames within ``min_step_m`` of the last kept one are skipped (a standing
+    vehicle repeats one view); the first and the last frame are always kept."""
+    t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    keep = np.zeros(len(t), bool)
+    last = None
+    for i, p in enumerate(t):  # sequential by nature; O(F) over frames, not pixels
+        if last is None or float(np.hypot(*(p - last))) >= min_step_m:
+            keep[i], last = True, p
+    keep[-1] = True
+    return keep
+
+
+def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisit_m: float) -> list[SegmentPlan]:
+    """Segments of the path (F, 2) by length: ``round(path / length_m)`` equal cores (at least one), each with
+    the frames within ``overlap_m`` of its core, plus the frames of other passes within ``revisit_m`` of its
+    core's path and those within ``overlap_m`` of them along their own pass (the frames that look at it)."""
+    t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    s = path_metres(t)
+    n = max(1, int(round(s[-1] / length_m))) if length_m > 0 else 1
+    cuts = np.linspace(0.0, s[-1], n + 1)
+    plans = []
+    for k in range(n):
+        lo, hi = (cuts[k] if k else -math.inf), (cuts[k + 1] if k < n - 1 else math.inf)
+        own = np.flatnonzero((s >= cuts[k] - overlap_m) & (s <= cuts[k + 1] + overlap_m))
+        core = np.flatnonzero((s >= cuts[k] - 0.5 * overlap_m) & (s <= cuts[k + 1] + 0.5 * overlap_m))
+        # Another pass: frames far along the path from this stretch (not its own continuation), near its road.
+        band = (s >= cuts[k] - overlap_m - 2 * revisit_m) & (s <= cuts[k + 1] + overlap_m + 2 * revisit_m)
+        others = np.flatnonzero(~band)
+        revisit = np.zeros(0, np.int64)
+        if others.size and core.size:
+            d, _ = cKDTree(t[core]).query(t[others])
+            near_s = np.sort(s[others[d < revisit_m]])
+            if near_s.size:
+                j = np.clip(np.searchsorted(near_s, s[others]), 1, near_s.size)
+                gap = np.minimum(np.abs(s[others] - near_s[j - 1]), np.abs(near_s[np.minimum(j, near_s.size - 1)]
+                                                                          - s[others]))
+                revisit = others[gap <= overlap_m]
+        plans.append(SegmentPlan(k, (float(lo), float(hi)), tuple(int(i) for i in own),
+                                 tuple(int(i) for i in revisit)))
+    return plans
+
+
+def _drive_positions(seq: Sequence) -> tuple[list[int], np.ndarray]:
+    """Positions of the frames whose every view has a finite pose, and their trajectory (F, 3)."""
+    pos = [p for p, f in enumerate(seq.frames) if f.views and finite_views(seq, [p])[1] == 0]
+    traj = np.array([np.mean([v.T_world_cam[:3, 3] for v in seq.frames[p].views.values()], axis=0) for p in pos])
+    return pos, traj.reshape(-1, 3)
+
+
+def skip_standing(seq: Sequence, cfg: MeshConfig, at_least: int = 10) -> tuple[Sequence, str | None]:
+    """The sequence without the frames of a standing vehicle (:func:`moving_frames`) when there are at least
+    ``at_least`` of them (a few slow frames are views like any other), and the note saying so."""
+    pos, traj = _drive_positions(seq)
+    if len(pos) < 3:
+        return seq, None
+    keep = moving_frames(traj[:, :2], cfg.segment_min_step_m)
+    drop = {pos[i] for i in np.flatnonzero(~keep)}
+    if len(drop) < at_least:
+        return seq, None
+    ids = [seq.frames[p].index for p in sorted(drop)]
+    note = (f"{len(drop)} frame(s) skipped (frames {ids[0]}..{ids[-1]}): within mesh.segment_min_step_m "
+            f"{cfg.segment_min_step_m:g} m of the previous frame kept, a standing vehicle adds no view")
+    return dataclasses.replace(seq, frames=[f for p, f in enumerate(seq.frames) if p not in drop]), note
+
+
+def needs_segments(seq: Sequence, cfg: MeshConfig) -> bool:
+    """Whether the drive's path is longer than 1.5 ``cfg.segment_m`` (0: never segmented)."""
+    if cfg.segment_m <= 0 or len(seq.frames) < 3:
+        return False
+    _, traj = _drive_positions(seq)
+    return len(traj) >= 3 and float(path_metres(traj[:, :2])[-1]) > 1.5 * cfg.segment_m
+
+
+def reconstruct_segment(seq: Sequence, positions: tuple[int, ...], cfg: MeshConfig, heldout_frames: set[int],
+                        label: str = "segment") -> tuple[RoadMesh, dict]:
+    """Stage 1 on the frames at ``positions`` of ``seq`` alone, holding out ``heldout_frames`` (frame
+    indices): the segment's tile and its metrics. Its warnings are re-issued prefixed with ``label``."""
+    from pavemap.mesh.train import reconstruct
+
+    sub = dataclasses.replace(seq, frames=[seq.frames[p] for p in positions])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        tile, metrics = reconstruct(sub, None, cfg, progress=False, heldout_frames=heldout_frames)
+    for w in caught:
+        warnings.warn(f"{label}: {w.message}", stacklevel=2)
+    return tile, metrics
+
+
+def _stamp(seq: Sequence, plan: SegmentPlan, cfg: MeshConfig, heldout: set[int]) -> str:
+    """What a segment's tile depends on: its frames (images and poses), the settings and the held-out frames."""
+    conf = {k: v for k, v in cfg.to_dict().items() if k not in ("device", "threads", "resume")}
+    frames = []
+    for p in plan.positions:
+        f = seq.frames[p]
+        frames.append([f.index, sorted((c, v.image, np.round(np.asarray(v.T_world_cam), 6).tolist())
+                                       for c, v in f.views.items())])
+    blob = json.dumps([conf, plan.to_dict(), frames, sorted(heldout & {seq.frames[p].index for p in plan.positions})],
+                      sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def _load_tile(folder: Path, stamp: str) -> tuple[RoadMesh, dict] | None:
+    from pavemap.mesh.outputs import load_mesh
+
+    f = folder / TILE_FILE
+    if not f.is_file():
+        return None
+    try:
+        info = json.loads(f.read_text())
+        if info.get("stamp") != stamp:
+            return None
+        return load_mesh(folder), info["metrics"]
+    except (OSError, ValueError, KeyError, PavemapError):
+        return None
+
+
+def _save_tile(folder: Path, tile: RoadMesh, metrics: dict, stamp: str) -> None:
+    from pavemap.mesh.outputs import _json_safe, save_mesh
+
+    folder.mkdir(parents=True, exist_ok=True)
+    save_mesh(folder, tile)
+    # tile.json last: a tile counts as done only once both files are complete
+    atomic_write_json(folder / TILE_FILE, _json_safe({"stamp": stamp, "metrics": metrics}))
+
+
+def _row(plan: SegmentPlan, own_m: np.ndarray, m: dict, seconds: float, reused: bool, seam: dict) -> dict:
+    geo = m.get("geometry") or {}
+    return {**plan.to_dict(), "path_m": [round(float(own_m[0]), 1), round(float(own_m[-1]), 1)],
+            "seconds": round(seconds, 2), "reused": reused, "psnr": m.get("psnr"), "sem_acc": m.get("sem_acc"),
+            "train_psnr": m.get("train_psnr"), "heldout_views": m.get("heldout_views"),
+            "train_views": m.get("train_views"), "height_rmse": m.get("height_rmse"),
+            "height_rmse_seen": m.get("height_rmse_seen"), "vertices": m.get("vertices"),
+            "camera_height_m": (geo.get("camera_height") or {}).get("used_m"), "source": geo.get("source"),
+            "trustworthy": geo.get("trustworthy"), "observed_fraction": geo.get("observed_fraction"), **seam}
+
+
+def reconstruct_segmented(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress: bool = True
+                          ) -> tuple[RoadMesh, dict]:
+    """Stage 1 on a long drive in segments; the blended mesh and the drive's metrics (``segments``: a row per
+    segment; ``seams``: how neighbouring segments agree where they overlap). Writes ``out_dir`` as
+    :func:`pavemap.mesh.reconstruct` does, plus ``out_dir/segments/NNN/`` per segment."""
+    from pavemap.mesh.outputs import write_outputs
+
+    t0 = time.perf_counter()
+    notes: list[str] = []  # the drive's own warnings (the segments' are issued as they run)
+    pos, traj = _drive_positions(seq)
+    if len(pos) < len(seq.frames):
+        notes.append(f"{len(seq.frames) - len(pos)} frame(s) with a NaN/infinite pose skipped")
+    s = path_metres(traj[:, :2])
+    local = plan_segments(traj[:, :2], cfg.segment_m, cfg.segment_overlap_m, cfg.segment_revisit_m)
+    plans = [SegmentPlan(p.index, p.core, tuple(pos[i] for i in p.own), tuple(pos[i] for i in p.revisit))
+             for p in local]
+    held_local = split_frames(len(pos), cfg.holdout_every, 1)[1]
+    heldout = {seq.frames[pos[i]].index for i in held_local}
+    views = [(f.index, v) for f in (seq.frames[p] for p in pos) for v in f.views.values()]
+    grid, _ = trajectory_grid(views, cfg, notes.append)
+    log.info("mesh: %.0f m of path in %d segments of ~%.0f m (overlap %.0f m), %d frames%s", s[-1], len(plans),
+             s[-1] / len(plans), cfg.segment_overlap_m, len(pos),
+             f", {sum(len(p.revisit) > 0 for p in plans)} with revisits" if any(p.revisit for p in plans) else "")
+    for n in notes:
+        warnings.warn(n, stacklevel=2)
+    stitcher, rows, tiles_meta, seg_notes = Stitcher(grid.spec), [], None, []
+    bar = tqdm(plans, disable=not progress, desc="segments", unit="segment", dynamic_ncols=True)
+    for plan, lp in zip(bar, local, strict=True):
+        label = f"segment {plan.index + 1}/{len(plans)} (frames {seq.frames[plan.own[0]].index}-" \
+                f"{seq.frames[plan.own[-1]].index})"
+        stamp = _stamp(seq, plan, cfg, heldout)
+        folder = None if out_dir is None else Path(out_dir) / SEGMENTS_DIR / f"{plan.index:03d}"
+        t_seg = time.perf_counter()
+        got = None if folder is None or not cfg.resume else _load_tile(folder, stamp)
+        if got is None:
+            tile, m = reconstruct_segment(seq, plan.positions, cfg, heldout, label)
+            if folder is not None:
+                _save_tile(folder, tile, m, stamp)
+        else:
+            tile, m = got
+            log.info("mesh: %s reused from %s", label, folder)
+        path_xy, path_s = own_path(traj[list(lp.own), :2], s[list(lp.own)])
+        w = segment_weights(_tile_grid(tile), path_xy, path_s, plan.core, cfg.segment_overlap_m,
+                            cfg.crop_m + 2.0 * cfg.resolution)
+        seam = stitcher.add(tile, w)
+        rows.append(_row(plan, s[list(lp.own)], m, time.perf_counter() - t_seg, got is not None, seam))
+        seg_notes += [f"segment {plan.index + 1}: {n}" for n in m.get("warnings", [])]
+        tiles_meta = tiles_meta or (tile.class_ids, tile.has_semantics)
+        bar.set_postfix(psnr=f"{m.get('psnr') or float('nan'):.2f}")
+        del tile
+    bar.close()
+    _drop_stale(out_dir, len(plans))
+    mesh = stitcher.mesh(*tiles_meta)
+    metrics = _drive_metrics(seq, mesh, rows, notes + seg_notes, cfg, time.perf_counter() - t0, len(pos))
+    if out_dir is not None:
+        write_outputs(Path(out_dir), mesh, metrics, seq.classes if tiles_meta[1] else [])
+    return mesh, metrics
+
+
+def _tile_grid(tile: RoadMesh):
+    from pavemap.mesh.model import MeshGrid
+
+    return MeshGrid(tile.surface.grid, tile.surface.valid.cpu().numpy())
+
+
+def _drop_stale(out_dir: Path | None, n: int) -> None:
+    """Remove the tiles of an earlier plan with more segments (only the two files pavemap writes there)."""
+    if out_dir is None or not (Path(out_dir) / SEGMENTS_DIR).is_dir():
+        return
+    for folder in sorted((Path(out_dir) / SEGMENTS_DIR).iterdir()):
+        if folder.is_dir() and folder.name.isdigit() and int(folder.name) >= n and (folder / TILE_FILE).is_file():
+            for name in (TILE_FILE, "mesh.npz"):
+                (folder / name).unlink(missing_ok=True)
+            if not any(folder.iterdir()):
+                folder.rmdir()
+
+
+def _mean_psnr(rows: list[dict], key: str, n_key: str) -> float | None:
+    """The PSNR of the segments' pooled squared error, each weighted by its evaluation views."""
+    got = [(r[key], r.get(n_key) or 1) for r in rows if r.get(key) is not None and math.isfinite(r[key])]
+    if not got:
+        return None
+    mse = sum(n * 10 ** (-p / 10) for p, n in got) / sum(n for _, n in got)
+    return round(-10 * math.log10(mse), 3)
+
+
+def _drive_metrics(seq: Sequence, mesh: RoadMesh, rows: list[dict], notes: list[str], cfg: MeshConfig,
+                   seconds: float, frames: int) -> dict:
+    """The drive's metrics.json from its segments' rows, on the blended ``mesh``."""
+    s = mesh.surface
+    valid = s.valid.numpy()
+    observed = mesh.observed.numpy() & valid
+    seam_abs = [r["seam_median_abs_m"] for r in rows if r.get("seam_median_abs_m") is not None]
+    sem = [(r["sem_acc"], r.get("heldout_views") or 1) for r in rows if r.get("sem_acc") is not None]
+    untrusted = [r["index"] + 1 for r in rows if r.get("trustworthy") is False]
+    cam_h = [r["camera_height_m"] for r in rows if r.get("camera_height_m") is not None]
+    geo_warn = [f"segment(s) {', '.join(map(str, untrusted))} of {len(rows)} not trustworthy"] if untrusted else []
+    geometry = {"source": sorted({r["source"] for r in rows if r.get("source")}),
+                "trustworthy": not untrusted,
+                "observed_fraction": round(float(observed.sum() / max(1, valid.sum())), 4),
+                "camera_height": {"used_m": float(np.median(cam_h)) if cam_h else None,
+                                  "per_segment_m": cam_h, "prior_m": cfg.camera_height},
+                "warnings": geo_warn + [n for n in notes if "trustworthy" in n or "not observable" in n]}
+    vq = valid[:-1, :-1] & valid[1:, 1:]
+    metrics: dict = {
+        "segmented": True, "device": str(resolve_device(cfg.device)), "psnr": _mean_psnr(rows, "psnr", "heldout_views"),
+        "train_psnr": _mean_psnr(rows, "train_psnr", "train_views"),
+        "sem_acc": round(sum(a * n for a, n in sem) / sum(n for _, n in sem), 4) if sem else None,
+        "vertices": int(valid.sum()), "faces": int((vq & valid[:-1, 1:]).sum() + (vq & valid[1:, :-1]).sum()),
+        "grid": s.grid.to_dict(), "segments": rows,
+        "seams": {"count": len(seam_abs), "median_abs_m": float(np.median(seam_abs)) if seam_abs else None,
+                  "max_abs_m": max(seam_abs) if seam_abs else None},
+        "geometry": geometry, "warnings": notes, "history": [], "config": cfg.to_dict(),
+        "seconds": seconds, "frames": frames, "seconds_per_frame": seconds / max(1, frames),
+    }
+    if has_truth_height(seq.root):
+        metrics.update(truth_metrics(mesh, read_truth_height(seq.root), mesh.observed))
+    return metrics

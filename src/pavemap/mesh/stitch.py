@@ -1,0 +1,145 @@
+"""Segments of a long drive blended into one surface (:mod:`pavemap.mesh.segments`).
+
+Each segment owns the road whose nearest point on its own stretch of path lies inside its core interval of
+path length; across a seam the weights of the two segments ramp linearly over ``overlap_m`` and sum to one, so
+the blended heights, colours and logits are continuous. Road another pass revisits is owned by the segments of
+both passes (each trained on both passes' views) and averaged: one surface, not two layers. A tile's cells no
+segment owns (the road the end frames look at past the drive) keep a tiny floor weight, so that the segments
+whose crop holds them are averaged there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from pavemap.geometry import GridSpec, HeightField
+from pavemap.mesh.model import MeshGrid, RoadMesh, dense_polyline
+
+#: weight of a cell in a segment's crop that it does not own (only counts where no segment owns the cell)
+FLOOR_WEIGHT = 1e-4
+#: a cell counts as owned (for the observed layer, the seam statistics and the samples) above this weight
+OWNED = 0.05
+
+
+def own_path(traj_xy: np.ndarray, path_m: np.ndarray, step_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The points of a segment's own stretch of path (M, 2) at most ``step_m`` apart, with their path length
+    (M,): traj_xy (F, 2) its own frames' positions in order, path_m (F,) their path length along the drive."""
+    pts = dense_polyline(traj_xy, step_m)
+    seg = np.linalg.norm(np.diff(traj_xy, axis=0), axis=1) if len(traj_xy) > 1 else np.zeros(0)
+    along_own = np.concatenate([[0.0], np.cumsum(seg)])
+    run = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    # Arc length of the dense points along the own polyline, mapped onto the drive's path length.
+    return pts, np.interp(run, along_own, path_m) if len(traj_xy) > 1 else np.full(len(pts), path_m[0])
+
+
+def segment_weights(grid: MeshGrid, path_xy: np.ndarray, path_s: np.ndarray, core: tuple[float, float],
+                    overlap_m: float, reach_m: float) -> np.ndarray:
+    """(ny, nx) float32 blending weights of a segment's tile on its grid.
+
+    path_xy (M, 2), path_s (M,): its own stretch of path (:func:`own_path`); core: the path-length interval it
+    owns (-inf / inf at the drive's ends); a cell's path coordinate is that of the nearest path point, and only
+    cells within ``reach_m`` of the path are owned (farther cells belong to another pass)."""
+    xy = grid.vertex_xy()
+    d, k = cKDTree(path_xy).query(xy)
+    s = path_s[k]
+    if len(path_xy) > 1:  # along the path's local direction: continuous, not in steps of the point spacing
+        tan = np.gradient(path_xy, axis=0)
+        tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-9)
+        ds = np.gradient(path_s)
+        s = s + np.clip(((xy - path_xy[k]) * tan[k]).sum(1), -np.abs(ds[k]), np.abs(ds[k])) * np.sign(ds[k])
+    ov = max(float(overlap_m), grid.spec.res)
+    lo, hi = core
+    ramp = np.clip((s - (lo - 0.5 * ov)) / ov, 0.0, 1.0) * np.clip(((hi + 0.5 * ov) - s) / ov, 0.0, 1.0)
+    w = np.where(d <= reach_m, ramp, 0.0) + FLOOR_WEIGHT
+    out = np.zeros(grid.valid.shape, np.float32)
+    out.reshape(-1)[np.flatnonzero(grid.valid.reshape(-1))] = w
+    return out
+
+
+@dataclass
+class Stitcher:
+    """Weighted sums of the tiles on the drive's grid ``spec``; :meth:`add` a tile, then :meth:`mesh`."""
+
+    spec: GridSpec
+    channels: int = -1  # semantic channels, set by the first tile
+    sums: dict[str, np.ndarray] = field(default_factory=dict)
+    samples: list[np.ndarray] = field(default_factory=list)
+
+    def _alloc(self, channels: int) -> None:
+        ny, nx = self.spec.ny, self.spec.nx
+        self.channels = channels
+        self.sums = {"w": np.zeros((ny, nx), np.float32), "h": np.zeros((ny, nx), np.float64),
+                     "rgb": np.zeros((ny, nx, 3), np.float32), "sem": np.zeros((ny, nx, channels), np.float32),
+                     "observed": np.zeros((ny, nx), bool)}
+
+    def _window(self, g: GridSpec) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
+        """(global, tile) slices of the part of tile grid ``g`` inside the drive's grid; None if none."""
+        ox = int(round((g.x0 - self.spec.x0) / self.spec.res))
+        oy = int(round((g.y0 - self.spec.y0) / self.spec.res))
+        x0, y0 = max(ox, 0), max(oy, 0)
+        x1, y1 = min(ox + g.nx, self.spec.nx), min(oy + g.ny, self.spec.ny)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        return (slice(y0, y1), slice(x0, x1)), (slice(y0 - oy, y1 - oy), slice(x0 - ox, x1 - ox))
+
+    def add(self, tile: RoadMesh, weight: np.ndarray) -> dict:
+        """Blend ``tile`` with ``weight`` (its (ny, nx) :func:`segment_weights`) into the sums; returns how it
+        agrees with the segments added before it where both own the road and measured its height:
+        ``{"seam_cells", "seam_median_abs_m", "seam_median_m"}`` (None without such cells)."""
+        s = tile.surface
+        if abs(s.res - self.spec.res) > 1e-9:
+            raise ValueError(f"tile resolution {s.res} differs from the drive's {self.spec.res}")
+        if not self.sums:
+            self._alloc(int(tile.sem_logits.shape[-1]))
+        win = self._window(s.grid)
+        if win is None:
+            return {"seam_cells": 0, "seam_median_abs_m": None, "seam_median_m": None}
+        (gy, gx), (ty, tx) = win
+        valid = s.valid.cpu().numpy()[ty, tx]
+        w = np.where(valid, weight[ty, tx], 0.0).astype(np.float32)
+        h = s.heights.detach().cpu().numpy()[ty, tx].astype(np.float64)
+        observed = valid if tile.observed is None else tile.observed.cpu().numpy()[ty, tx] & valid
+        sums = {k: v[gy, gx] for k, v in self.sums.items()}  # views into the sums
+        before = sums["w"] > OWNED
+        both = before & sums["observed"] & observed & (w > OWNED)
+        stats = {"seam_cells": int(both.sum()), "seam_median_abs_m": None, "seam_median_m": None}
+        if both.any():
+            diff = h[both] - sums["h"][both] / sums["w"][both]
+            stats.update(seam_median_abs_m=round(float(np.median(np.abs(diff))), 5),
+                         seam_median_m=round(float(np.median(diff)), 5))
+        sums["w"] += w
+        sums["h"] += w * np.where(valid, h, 0.0)
+        sums["rgb"] += w[..., None] * tile.rgb.cpu().numpy()[ty, tx]
+        sums["sem"] += w[..., None] * tile.sem_logits.cpu().numpy()[ty, tx]
+        sums["observed"] |= observed & (w > OWNED)
+        if tile.samples is not None and len(tile.samples):
+            self.samples.append(_owned_samples(tile.samples, s.grid, weight))
+        return stats
+
+    def mesh(self, class_ids: list[int], has_semantics: bool) -> RoadMesh:
+        """The blended surface: every cell some tile holds, heights / colours / logits their weighted means."""
+        if not self.sums:
+            raise ValueError("no tile was added")
+        w = self.sums["w"]
+        valid = w > 0
+        inv = np.where(valid, 1.0 / np.where(valid, w, 1.0), 0.0)
+        h = (self.sums["h"] * inv).astype(np.float32)
+        g = self.spec
+        surf = HeightField(g.x0, g.y0, g.res, torch.from_numpy(h), torch.from_numpy(valid))
+        rgb = torch.from_numpy((self.sums["rgb"] * inv[..., None]).astype(np.float32))
+        sem = torch.from_numpy((self.sums["sem"] * inv[..., None]).astype(np.float32))
+        samples = np.concatenate(self.samples).astype(np.float32) if self.samples else None
+        return RoadMesh(surf, rgb, sem, list(class_ids), has_semantics, torch.from_numpy(self.sums["observed"] & valid),
+                        samples)
+
+
+def _owned_samples(samples: np.ndarray, g: GridSpec, weight: np.ndarray) -> np.ndarray:
+    """The height measurements (N, 3) of a tile on the road it owns by at least half (each measurement then
+    enters the drive once, except where two passes share the road)."""
+    i = np.clip(np.rint((samples[:, 0] - g.x0) / g.res).astype(np.int64), 0, g.nx - 1)
+    j = np.clip(np.rint((samples[:, 1] - g.y0) / g.res).astype(np.int64), 0, g.ny - 1)
+    return samples[weight[j, i] >= 0.5]

@@ -1,0 +1,161 @@
+"""Long drives in segments (issue 17): the plan, the blend, gaps and standing frames (small, no rendering)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pavemap.geometry import GridSpec, HeightField
+from pavemap.mesh.model import RoadMesh, build_grid
+from pavemap.mesh.segments import moving_frames, path_metres, plan_segments
+from pavemap.mesh.setup import path_pieces
+from pavemap.mesh.stitch import Stitcher, own_path, segment_weights
+
+
+def _line(n: int, step: float) -> np.ndarray:
+    return np.stack([np.arange(n) * step, np.zeros(n)], 1)
+
+
+def test_plan_cuts_by_length_with_overlap():
+    xy = _line(401, 1.0)  # 400 m
+    plans = plan_segments(xy, 150.0, 20.0, 10.0)
+    assert len(plans) == 3  # round(400 / 150)
+    s = path_metres(xy)
+    assert plans[0].core[0] == -math.inf and plans[-1].core[1] == math.inf
+    for a, b in zip(plans[:-1], plans[1:], strict=True):
+        cut = a.core[1]
+        assert cut == pytest.approx(b.core[0])
+        # both segments hold the frames 20 m either side of their seam
+        assert s[a.own[-1]] >= cut + 19.0 and s[b.own[0]] <= cut - 19.0
+    assert all(not p.revisit for p in plans)  # a straight road never comes back
+    assert len(plan_segments(xy, 0.0, 20.0, 10.0)) == 1
+
+
+def test_plan_finds_the_other_pass_of_an_out_and_back_drive():
+    out = _line(201, 1.0)
+    back = out[::-1] + [0.0, 3.5]  # U-turn: the opposite lane, 3.5 m over
+    xy = np.concatenate([out, back[1:]])
+    plans = plan_segments(xy, 100.0, 15.0, 10.0)
+    assert len(plans) == 4
+    first, last = plans[0], plans[-1]
+    # the first stretch (x 0..100 m out) is driven again at the end (x 100..0 m back): each gets the other's frames
+    assert first.revisit and last.revisit
+    assert set(first.revisit) & set(last.own) and set(last.revisit) & set(first.own)
+    rx = xy[list(first.revisit), 0]
+    assert rx.min() < 10 and rx.max() < 150
+
+
+def test_standing_vehicle_frames_are_skipped():
+    xy = np.concatenate([_line(50, 1.0), np.tile([[49.0, 0.0]], (1000, 1)), _line(50, 1.0) + [50.0, 0.0]])
+    keep = moving_frames(xy, 0.1)
+    assert keep.sum() == 100  # the moving frames only: the standing ones add nothing
+    assert keep[0] and keep[-1]
+
+
+def test_path_pieces_cut_at_a_gap_and_name_it():
+    xy = np.concatenate([_line(50, 1.0), _line(50, 1.0) + [99.0, 0.0]])  # frames 49 and 50 lie 50 m apart
+    said: list[str] = []
+    pieces = path_pieces(xy, list(range(100)), said.append)
+    assert [len(p) for p in pieces] == [50, 50]
+    assert len(said) == 1 and "frames 49 and 50" in said[0] and "50 m apart" in said[0]
+    # the crop follows the pieces: no surface in the middle of the gap
+    grid = build_grid(pieces[0], 0.5, 4.0, pieces[1:])
+    g = grid.spec
+    i, j = int(round((74.0 - g.x0) / g.res)), int(round((0.0 - g.y0) / g.res))
+    assert not grid.valid[j, i]
+    assert path_pieces(_line(50, 1.0), list(range(50))) [0].shape == (50, 2)
+
+
+def _tile(xy: np.ndarray, offset: float, res: float = 0.1, crop: float = 3.0) -> RoadMesh:
+    """A tile of the plane z = 0.01 x + offset over the crop of ``xy``."""
+    grid = build_grid(xy, res, crop)
+    g = grid.spec
+    X, Y = g.centres()
+    h = torch.from_numpy((0.01 * X + offset).astype(np.float32))
+    rgb = torch.full((g.ny, g.nx, 3), 0.5)
+    sem = torch.zeros((g.ny, g.nx, 2))
+    return RoadMesh(HeightField(g.x0, g.y0, g.res, h, torch.from_numpy(grid.valid)), rgb, sem, [0, 1], True,
+                    torch.from_numpy(grid.valid.copy()), None)
+
+
+def _blend(offsets: tuple[float, float]) -> tuple[RoadMesh, dict, GridSpec]:
+    xy = _line(121, 1.0)  # 120 m, cut at 60 m, overlap 20 m
+    s = path_metres(xy)
+    plans = plan_segments(xy, 60.0, 20.0, 10.0)
+    drive = build_grid(xy, 0.1, 3.0).spec
+    st = Stitcher(drive)
+    seams = []
+    for plan, off in zip(plans, offsets, strict=True):
+        own = xy[list(plan.own)]
+        tile = _tile(own, off)
+        from pavemap.mesh.segments import _tile_grid
+
+        pxy, ps = own_path(own, s[list(plan.own)])
+        seams.append(st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2)))
+    return st.mesh([0, 1], True), seams[1], drive
+
+
+def test_blend_is_continuous_across_the_seam_and_measures_the_step():
+    mesh, seam, g = _blend((0.0, 0.02))  # the second tile 2 cm higher
+    assert seam["seam_median_abs_m"] == pytest.approx(0.02, abs=1e-4)
+    h = mesh.surface.heights.numpy()
+    j = int(round((0.0 - g.y0) / g.res))
+    row = h[j] - 0.01 * (g.x0 + np.arange(g.nx) * g.res)  # the blend minus the plane
+    x = g.x0 + np.arange(g.nx) * g.res
+    assert np.allclose(row[x < 45], 0.0, atol=1e-4) and np.allclose(row[(x > 75) & (x < 115)], 0.02, atol=1e-4)
+    # the 2 cm are shared out over the 20 m ramp: no step larger than 0.02 * 0.1 / 20 between cells
+    assert np.abs(np.diff(row[(x > 1) & (x < 119)])).max() < 2e-4 + 1e-6
+    assert mesh.observed.numpy()[j, (x > 1) & (x < 119)].all()
+
+
+def test_blend_of_agreeing_tiles_is_the_plane():
+    mesh, seam, g = _blend((0.0, 0.0))
+    assert seam["seam_median_abs_m"] == pytest.approx(0.0, abs=1e-5)
+    s = mesh.surface
+    v = s.valid.numpy()
+    X, _ = g.centres()
+    assert np.allclose(s.heights.numpy()[v], 0.01 * X[v], atol=1e-4)
+
+
+def test_revisited_road_is_one_surface():
+    """Two passes' segments over one road (each holding both passes' views) average into one surface."""
+    out = _line(201, 1.0)
+    xy = np.concatenate([out, out[::-1][1:] + [0.0, 0.5]])
+    s = path_metres(xy)
+    plans = plan_segments(xy, 200.0, 20.0, 10.0)
+    assert len(plans) == 2
+    st = Stitcher(build_grid(xy, 0.1, 3.0).spec)
+    from pavemap.mesh.segments import _tile_grid
+
+    for plan, off in zip(plans, (0.0, 0.01), strict=True):
+        tile = _tile(xy[list(plan.positions)], off)
+        pxy, ps = own_path(xy[list(plan.own)], s[list(plan.own)])
+        st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2))
+    m = st.mesh([0, 1], True)
+    g = m.surface.grid
+    X, Y = g.centres()
+    resid = m.surface.heights.numpy() - 0.01 * X
+    v = m.surface.valid.numpy() & (X > 30) & (X < 170) & (np.abs(Y - 0.25) < 2.5)  # within reach of both passes
+    # both passes own the road there: the mean of the two, one layer
+    assert np.allclose(resid[v], 0.005, atol=2e-4)
+
+
+def test_a_standing_vehicle_is_skipped_before_training():
+    """1,000 frames at one place: the whole-drive path drops them too, and says so."""
+    from pavemap.mesh import MeshConfig
+    from pavemap.mesh.segments import skip_standing
+    from pavemap.types import Camera, Frame, Sequence, View
+
+    def frame(i: int, x: float) -> Frame:
+        T = np.eye(4)
+        T[0, 3] = x
+        return Frame(i, i * 0.1, {"c": View("c", f"images/{i}.png", T)})
+
+    xs = [float(i) for i in range(40)] + [39.0] * 1000 + [40.0 + i for i in range(40)]
+    seq = Sequence("s", [], {"c": Camera("c", 10, 10, np.eye(3))}, [frame(i, x) for i, x in enumerate(xs)])
+    out, note = skip_standing(seq, MeshConfig())
+    assert len(out.frames) == 80 and "1000 frame(s) skipped (frames 40..1039)" in note
+    assert skip_standing(out, MeshConfig())[1] is None  # nothing standing left
