@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 import pytest
-import shapely
 
 from pavemap.errors import PavemapError, SequenceError
 
@@ -178,8 +177,3 @@ def test_bad_trajectories_are_named(tmp_path, caplog):
     with pytest.raises(PavemapError, match="not found"):
         read_trajectory(tmp_path / "missing.txt")
 
-
-def test_footprints_of_truth_are_shapely(loop):
-    from pavemap.evaluate.gt import load_truth
-
-    assert all(isinstance(t["polygon"], shapely.Polygon | shapely.MultiPolygon) for t in load_truth(loop))
