@@ -78,13 +78,18 @@ class HeightField:
         """(F, 3) long vertex ids of the triangles, counter-clockwise seen from above (+z)."""
         nx, ny = self.nx, self.ny
         dev = self.heights.device
-        jj, ii = torch.meshgrid(torch.arange(ny - 1, device=dev), torch.arange(nx - 1, device=dev), indexing="ij")
-        v00 = (jj * nx + ii).reshape(-1)
-        v10, v11, v01 = v00 + 1, v00 + nx + 1, v00 + nx
-        f = torch.cat([torch.stack([v00, v10, v11], 1), torch.stack([v00, v11, v01], 1)], 0)
-        if valid_only:
-            f = f[self.valid.reshape(-1)[f].all(dim=1)]
-        return f
+        if valid_only:  # only the kept triangles are built: a long drive's grid is mostly off the road
+            v = self.valid.to(dev)
+            quad = v[:-1, :-1] & v[1:, 1:]
+            lower, upper = quad & v[:-1, 1:], quad & v[1:, :-1]
+        else:
+            lower = upper = torch.ones((ny - 1, nx - 1), dtype=torch.bool, device=dev)
+        tris = []
+        for keep, (a, b) in ((lower, (1, nx + 1)), (upper, (nx + 1, nx))):
+            jj, ii = torch.nonzero(keep, as_tuple=True)
+            v00 = jj * nx + ii
+            tris.append(torch.stack([v00, v00 + a, v00 + b], 1))
+        return torch.cat(tris, 0)
 
     def height_at(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Interpolated surface height at world points xy (N, 2) -> z (N,), inside (N,) bool.

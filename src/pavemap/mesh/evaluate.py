@@ -73,7 +73,7 @@ def height_rmse(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.
                 truth: HeightField) -> tuple[float, int]:
     """RMSE (m) of mesh heights vs the truth raster over kept vertices inside the truth grid, and their count."""
     xy = grid_xy[valid].double().cpu()
-    t = HeightField(truth.x0, truth.y0, truth.res, truth.heights.double(), truth.valid)
+    t = truth  # float32 heights are interpolated in the weights' float64 (no float64 copy of a large raster)
     z, inside = t.height_at(xy)
     h = mesh_heights[valid].double().cpu()
     if not inside.any():

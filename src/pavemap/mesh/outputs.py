@@ -75,7 +75,9 @@ def write_mesh_ply(path: Path, mesh: RoadMesh) -> None:
     vid = torch.nonzero(flat_valid).squeeze(1)
     lut = torch.full((s.nx * s.ny,), -1, dtype=torch.long)
     lut[vid] = torch.arange(vid.numel())
-    verts = s.vertices().detach().cpu().double()[vid].numpy()
+    vid_np = vid.numpy()
+    verts = np.stack([s.x0 + (vid_np % s.nx) * s.res, s.y0 + (vid_np // s.nx) * s.res,
+                      s.heights.detach().cpu().reshape(-1)[vid].double().numpy()], 1)
     faces = lut[s.faces(valid_only=True).cpu()].numpy()
     rgb = (mesh.rgb.reshape(-1, 3)[vid].clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
     colours = np.concatenate([rgb, np.full((rgb.shape[0], 1), 255, np.uint8)], 1)

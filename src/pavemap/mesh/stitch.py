@@ -121,20 +121,26 @@ class Stitcher:
         return stats
 
     def mesh(self, class_ids: list[int], has_semantics: bool) -> RoadMesh:
-        """The blended surface: every cell some tile holds, heights / colours / logits their weighted means."""
+        """The blended surface: every cell some tile holds, heights / colours / logits their weighted means.
+        Consumes the sums (divided in place: on a long drive's grid they are most of the memory)."""
         if not self.sums:
             raise ValueError("no tile was added")
-        w = self.sums["w"]
+        sums, self.sums = self.sums, {}
+        w = sums.pop("w")
         valid = w > 0
-        inv = np.where(valid, 1.0 / np.where(valid, w, 1.0), 0.0)
-        h = (self.sums["h"] * inv).astype(np.float32)
+        np.divide(1.0, w, out=w, where=valid)  # w becomes 1 / w where valid, 0 elsewhere
+        w[~valid] = 0.0
+        h = (sums.pop("h") * w).astype(np.float32)
+        rgb, sem = sums.pop("rgb"), sums.pop("sem")
+        rgb *= w[..., None]
+        sem *= w[..., None]
         g = self.spec
         surf = HeightField(g.x0, g.y0, g.res, torch.from_numpy(h), torch.from_numpy(valid))
-        rgb = torch.from_numpy((self.sums["rgb"] * inv[..., None]).astype(np.float32))
-        sem = torch.from_numpy((self.sums["sem"] * inv[..., None]).astype(np.float32))
         samples = np.concatenate(self.samples).astype(np.float32) if self.samples else None
-        return RoadMesh(surf, rgb, sem, list(class_ids), has_semantics, torch.from_numpy(self.sums["observed"] & valid),
-                        samples)
+        observed = sums.pop("observed")
+        observed &= valid
+        return RoadMesh(surf, torch.from_numpy(rgb), torch.from_numpy(sem), list(class_ids), has_semantics,
+                        torch.from_numpy(observed), samples)
 
 
 def _owned_samples(samples: np.ndarray, g: GridSpec, weight: np.ndarray) -> np.ndarray:
