@@ -78,16 +78,11 @@ class HeightField:
         """(F, 3) long vertex ids of the triangles, counter-clockwise seen from above (+z)."""
         nx, ny = self.nx, self.ny
         dev = self.heights.device
-        if valid_only:  # only the kept triangles are built: a long drive's grid is mostly off the road
-            v = self.valid.to(dev)
-            quad = v[:-1, :-1] & v[1:, 1:]
-            lower, upper = quad & v[:-1, 1:], quad & v[1:, :-1]
-        else:
-            lower = upper = torch.ones((ny - 1, nx - 1), dtype=torch.bool, device=dev)
+        v = self.valid.to(dev) if valid_only else torch.ones((ny, nx), dtype=torch.bool, device=dev)
+        quad = v[:-1, :-1] & v[1:, 1:]  # only the kept triangles are built: a long drive's grid is mostly empty
         tris = []
-        for keep, (a, b) in ((lower, (1, nx + 1)), (upper, (nx + 1, nx))):
-            jj, ii = torch.nonzero(keep, as_tuple=True)
-            v00 = jj * nx + ii
+        for keep, a, b in ((quad & v[:-1, 1:], 1, nx + 1), (quad & v[1:, :-1], nx + 1, nx)):
+            v00 = (lambda jj, ii: jj * nx + ii)(*torch.nonzero(keep, as_tuple=True))
             tris.append(torch.stack([v00, v00 + a, v00 + b], 1))
         return torch.cat(tris, 0)
 
