@@ -82,8 +82,8 @@ class HeightField:
         quad = v[:-1, :-1] & v[1:, 1:]  # only the kept triangles are built: a long drive's grid is mostly empty
         tris = []
         for keep, a, b in ((quad & v[:-1, 1:], 1, nx + 1), (quad & v[1:, :-1], nx + 1, nx)):
-            v00 = (lambda jj, ii: jj * nx + ii)(*torch.nonzero(keep, as_tuple=True))
-            tris.append(torch.stack([v00, v00 + a, v00 + b], 1))
+            jj, ii = torch.nonzero(keep, as_tuple=True)
+            tris.append(torch.stack([jj * nx + ii, jj * nx + ii + a, jj * nx + ii + b], 1))
         return torch.cat(tris, 0)
 
     def height_at(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
