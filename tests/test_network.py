@@ -206,6 +206,58 @@ def test_rerun_redoes_no_finished_drive(serial, world):
     assert s["failed"] == [] and all(e.get("reused") for e in s["drives"])
 
 
+# A drive long enough for two segments (issue 17): on the cluster its segments are tasks of their own.
+LONG_OVERRIDES = [*OVERRIDES[:-1], "mesh.resolution=0.2", "mesh.segment_m=22", "mesh.segment_overlap_m=5"]
+
+
+@pytest.fixture(scope="module")
+def long_drive(tmp_path_factory):
+    from pavemap.synth import synthesize
+
+    root = tmp_path_factory.mktemp("long")
+    synthesize(root / "seqs" / "long", preset="kitti-like", seed=5, frames=20, hz=4.0, scale=0.3, depth="sparse",
+               progress=False)
+    return root, _manifest(root / "m.yaml", [{"path": "seqs/long", "date": JAN}], LONG_OVERRIDES)
+
+
+def test_segments_of_a_long_drive_are_tasks_and_a_killed_one_is_retried(long_drive):
+    root, m = long_drive
+    marker = root / "killed.txt"
+
+    def killing_drive(task: dict) -> dict:  # on the drive's worker the first segment it runs kills it
+        import pavemap.mesh.tiles as tiles
+
+        real = tiles.run_tile
+
+        def run_tile(job):  # noqa: ANN001, ANN202
+            if not marker.exists():
+                marker.write_text(str(os.getpid()))
+                os._exit(1)
+            return real(job)
+
+        tiles.run_tile = run_tile
+        return run_drive(task)
+
+    s_serial = run_batch(m, root / "net_serial", scheduler="serial", echo=lambda _: None)
+    lines: list[str] = []
+    s_dask = run_batch(m, root / "net_dask", workers=2, retries=2, task_fn=killing_drive, echo=lines.append)
+    assert s_serial["failed"] == [] and s_dask["failed"] == [], (s_serial, s_dask)
+    assert marker.is_file(), "no worker was killed"
+    (entry,) = s_dask["drives"]
+    rows = entry["segment_tasks"]
+    assert rows and {r["segment"] for r in rows} <= {0, 1}  # a tile finished before the kill is not redone
+    assert not any(r["worker"].endswith(f":{marker.read_text()}") for r in rows)
+    assert "segment_tasks" not in s_serial["drives"][0]  # one by one, the drive computes its own tiles
+    a, b = root / "net_serial" / "drives" / "long", root / "net_dask" / "drives" / "long"
+    ma, mb = (json.loads((r / "mesh" / "metrics.json").read_text()) for r in (a, b))
+    assert ma["segmented"] and len(ma["segments"]) == 2
+    assert _no_seconds({**ma, "segments": [{**r, "reused": None} for r in ma["segments"]]}) == \
+        _no_seconds({**mb, "segments": [{**r, "reused": None} for r in mb["segments"]]})
+    za, zb = (np.load(r / "mesh" / "mesh.npz") for r in (a, b))
+    assert za.files == zb.files and all(np.array_equal(za[k], zb[k]) for k in za.files)
+    assert _records(a) == _records(b)
+
+
 @pytest.mark.parametrize("entry, message", [
     ({"path": "seqs/jan-van1"}, "drives[0]: 'date' is missing"),
     ({"path": "seqs/jan-van1", "date": "2026-13-01"}, "not an ISO date"),

@@ -59,6 +59,26 @@ def test_fit_is_robust_to_mismatched_points_and_refuses_too_few():
     assert fit_relief(s, t, r, qs, qt, ReliefFit(max_nodes=1000)) is None
 
 
+def test_banded_solve_equals_the_sparse_solve_on_both_lattice_orders():
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    from pavemap.mesh.relief import _bilinear, _difference, _gram, _solve_spd
+
+    rng = np.random.default_rng(4)
+    fit = ReliefFit()
+    for ns, nt in ((12, 40), (40, 12)):  # numbered along s first, then along t first
+        n = ns * nt
+        A = _bilinear(rng.uniform(0, (ns - 1) * fit.ds, 200), rng.uniform(0, (nt - 1) * fit.dt, 200), 0.0, 0.0,
+                      fit, ns, nt)
+        M = (A.T @ A + _gram(_difference(ns, nt, 0, 2)) + 0.01 * _gram(_difference(ns, nt, 1, 1))
+             + 1e-3 * sp.identity(n)).tocsr()
+        b = rng.normal(size=n)
+        assert np.allclose(_solve_spd(M, b, ns, nt), spsolve(M.tocsc(), b), rtol=0, atol=1e-9)
+    indefinite = sp.diags(np.r_[1.0, -1.0, np.ones(6)]).tocsr()  # not SPD: the general solve
+    assert np.allclose(_solve_spd(indefinite, np.ones(8), 2, 4), np.r_[1.0, -1.0, np.ones(6)])
+
+
 def test_anchoring_removes_a_drift_of_the_trained_surface():
     """Training lifted the surface by 3 cm: the correction fitted to the points' residuals takes it back."""
     rng = np.random.default_rng(2)

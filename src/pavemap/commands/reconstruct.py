@@ -32,7 +32,7 @@ def register(app: typer.Typer) -> None:
         from pavemap.io.sequence import read_sequence
         from pavemap.mesh import reconstruct as run
         from pavemap.mesh.checkpoint import CHECKPOINT
-        from pavemap.mesh.segments import SEGMENTS_DIR
+        from pavemap.mesh.tiles import SEGMENTS_DIR
 
         s = read_sequence(seq)
         rc = opt.resolve_config(s, config, sets, {"device": device, "mesh.epochs": epochs, "mesh.seed": seed,

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg import solveh_banded
 from scipy.sparse.linalg import spsolve
 
 
@@ -94,11 +95,37 @@ def fit_relief(s_pts: np.ndarray, t_pts: np.ndarray, r: np.ndarray, s_q: np.ndar
     values = np.zeros(ns * nt)
     for _ in range(max(1, fit.iterations)):
         W = sp.diags(w)
-        values = spsolve((A.T @ W @ A + reg).tocsc(), A.T @ (w * rr))
+        values = _solve_spd((A.T @ W @ A + reg).tocsr(), A.T @ (w * rr), ns, nt)
         res = A @ values - rr
         sigma = max(1.4826 * float(np.median(np.abs(res))), fit.sigma_floor)
         w = 1.0 / np.maximum(1.0, np.abs(res) / (fit.robust_k * sigma))  # Huber: linear beyond k sigma
     return _bilinear(s_q, t_q, s0, t0, fit, ns, nt) @ values
+
+
+def _solve_spd(M: sp.csr_matrix, b: np.ndarray, ns: int, nt: int) -> np.ndarray:
+    """(ns * nt,) solution of the normal equations M x = b (M symmetric positive definite, on the ns x nt
+    lattice) by a banded Cholesky, the lattice numbered along its shorter axis first (bandwidth 2 x that
+    axis's nodes: second differences reach two nodes); the general sparse solve if M is not numerically SPD.
+
+    Why: SuperLU treats M as unsymmetric and its fill grows with the lattice's width. Measured on one core
+    (results equal to 1e-13 m): lattices of 92 / 202 / 402 x 322 nodes 0.86 / 2.65 / 7.4 s -> 0.24 / 0.86 /
+    4.4 s at the same peak memory. Conjugate gradients preconditioned by the lattice lines lost on the
+    data-free margins (~600-800 iterations)."""
+    n = ns * nt
+    order = np.arange(n).reshape(ns, nt)
+    order = (order.T if ns < nt else order).ravel()  # position in the band -> lattice index
+    C = M[order][:, order].tocoo()
+    upper = C.col >= C.row
+    bw = int((C.col - C.row)[upper].max(initial=0))
+    ab = np.zeros((bw + 1, n))
+    ab[bw + C.row[upper] - C.col[upper], C.col[upper]] = C.data[upper]
+    try:
+        x = solveh_banded(ab, b[order], overwrite_ab=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return spsolve(M.tocsc(), b)
+    out = np.empty(n)
+    out[order] = x
+    return out
 
 
 def _gram(D: sp.csr_matrix) -> sp.csr_matrix:

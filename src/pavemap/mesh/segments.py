@@ -12,8 +12,6 @@ no held-out frame trains a neighbouring segment.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import logging
 import math
 import time
@@ -26,20 +24,18 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from pavemap.device import resolve_device
-from pavemap.errors import PavemapError
-from pavemap.io.atomic import atomic_write_json
 from pavemap.io.truth import has_truth_height, read_truth_height
+from pavemap.mesh import tiles
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import finite_views, split_frames
 from pavemap.mesh.evaluate import truth_metrics
 from pavemap.mesh.model import RoadMesh
 from pavemap.mesh.setup import trajectory_grid
 from pavemap.mesh.stitch import Stitcher, own_path, segment_weights
+from pavemap.mesh.tiles import SEGMENTS_DIR, TileJob, tile_stamp
 from pavemap.types import Sequence
 
 log = logging.getLogger("pavemap")
-SEGMENTS_DIR = "segments"
-TILE_FILE = "tile.json"
 
 
 @dataclass(frozen=True)
@@ -146,52 +142,7 @@ def reconstruct_segment(seq: Sequence, positions: tuple[int, ...], cfg: MeshConf
                         label: str = "segment") -> tuple[RoadMesh, dict]:
     """Stage 1 on the frames at ``positions`` of ``seq`` alone, holding out ``heldout_frames`` (frame
     indices): the segment's tile and its metrics. Its warnings are re-issued prefixed with ``label``."""
-    from pavemap.mesh.train import reconstruct
-
-    sub = dataclasses.replace(seq, frames=[seq.frames[p] for p in positions])
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        tile, metrics = reconstruct(sub, None, cfg, progress=False, heldout_frames=heldout_frames)
-    for w in caught:
-        warnings.warn(f"{label}: {w.message}", stacklevel=2)
-    return tile, metrics
-
-
-def _stamp(seq: Sequence, plan: SegmentPlan, cfg: MeshConfig, heldout: set[int]) -> str:
-    """What a segment's tile depends on: its frames (images and poses), the settings and the held-out frames."""
-    conf = {k: v for k, v in cfg.to_dict().items() if k not in ("device", "threads", "resume")}
-    frames = []
-    for p in plan.positions:
-        f = seq.frames[p]
-        frames.append([f.index, sorted((c, v.image, np.round(np.asarray(v.T_world_cam), 6).tolist())
-                                       for c, v in f.views.items())])
-    blob = json.dumps([conf, plan.to_dict(), frames, sorted(heldout & {seq.frames[p].index for p in plan.positions})],
-                      sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:20]
-
-
-def _load_tile(folder: Path, stamp: str) -> tuple[RoadMesh, dict] | None:
-    from pavemap.mesh.outputs import load_mesh
-
-    f = folder / TILE_FILE
-    if not f.is_file():
-        return None
-    try:
-        info = json.loads(f.read_text())
-        if info.get("stamp") != stamp:
-            return None
-        return load_mesh(folder), info["metrics"]
-    except (OSError, ValueError, KeyError, PavemapError):
-        return None
-
-
-def _save_tile(folder: Path, tile: RoadMesh, metrics: dict, stamp: str) -> None:
-    from pavemap.mesh.outputs import _json_safe, save_mesh
-
-    folder.mkdir(parents=True, exist_ok=True)
-    save_mesh(folder, tile)
-    # tile.json last: a tile counts as done only once both files are complete
-    atomic_write_json(folder / TILE_FILE, _json_safe({"stamp": stamp, "metrics": metrics}))
+    return tiles.segment_tile(tiles.sub_sequence(seq, positions), cfg, heldout_frames, label)
 
 
 def _row(plan: SegmentPlan, own_m: np.ndarray, m: dict, seconds: float, reused: bool, seam: dict) -> dict:
@@ -205,60 +156,109 @@ def _row(plan: SegmentPlan, own_m: np.ndarray, m: dict, seconds: float, reused: 
             "trustworthy": geo.get("trustworthy"), "observed_fraction": geo.get("observed_fraction"), **seam}
 
 
-def reconstruct_segmented(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress: bool = True
-                          ) -> tuple[RoadMesh, dict]:
-    """Stage 1 on a long drive in segments; the blended mesh and the drive's metrics (``segments``: a row per
-    segment; ``seams``: how neighbouring segments agree where they overlap). Writes ``out_dir`` as
-    :func:`pavemap.mesh.reconstruct` does, plus ``out_dir/segments/NNN/`` per segment."""
-    from pavemap.mesh.outputs import write_outputs
+@dataclass
+class DrivePlan:
+    """A segmented drive: the positions of its posed frames and their trajectory (F, 3) and path length
+    (F,), the segments (in local and in sequence positions), the drive's held-out frame indices and notes."""
 
-    t0 = time.perf_counter()
-    notes: list[str] = []  # the drive's own warnings (the segments' are issued as they run)
+    pos: list[int]
+    traj: np.ndarray
+    s: np.ndarray
+    local: list[SegmentPlan]
+    plans: list[SegmentPlan]
+    heldout: set[int]
+    notes: list[str]
+
+    def label(self, seq: Sequence, plan: SegmentPlan) -> str:
+        return (f"segment {plan.index + 1}/{len(self.plans)} (frames {seq.frames[plan.own[0]].index}-"
+                f"{seq.frames[plan.own[-1]].index})")
+
+
+def plan_drive(seq: Sequence, cfg: MeshConfig) -> DrivePlan:
+    """Cut ``seq`` into segments (:func:`plan_segments` on its posed frames) and choose the held-out frames."""
+    notes: list[str] = []
     pos, traj = _drive_positions(seq)
     if len(pos) < len(seq.frames):
         notes.append(f"{len(seq.frames) - len(pos)} frame(s) with a NaN/infinite pose skipped")
-    s = path_metres(traj[:, :2])
     local = plan_segments(traj[:, :2], cfg.segment_m, cfg.segment_overlap_m, cfg.segment_revisit_m)
     plans = [SegmentPlan(p.index, p.core, tuple(pos[i] for i in p.own), tuple(pos[i] for i in p.revisit))
              for p in local]
     held_local = split_frames(len(pos), cfg.holdout_every, 1)[1]
     heldout = {seq.frames[pos[i]].index for i in held_local}
-    views = [(f.index, v) for f in (seq.frames[p] for p in pos) for v in f.views.values()]
+    return DrivePlan(pos, traj, path_metres(traj[:, :2]), local, plans, heldout, notes)
+
+
+def tile_jobs(seq: Sequence, cfg: MeshConfig, plan: DrivePlan, out_dir: Path) -> list[TileJob]:
+    """A job for every segment whose tile under ``out_dir/segments/`` is missing or stale (every segment
+    when ``cfg.resume`` is off)."""
+    conf, jobs = tiles.stamp_config(cfg), []
+    for p in plan.plans:
+        stamp = tile_stamp(conf, p.to_dict(), seq, p.positions, plan.heldout)
+        folder = Path(out_dir) / SEGMENTS_DIR / f"{p.index:03d}"
+        if not (cfg.resume and tiles.tile_done(folder, stamp)):
+            jobs.append(TileJob(tiles.sub_sequence(seq, p.positions), cfg, frozenset(plan.heldout), plan.label(seq, p),
+                                folder, stamp))
+    return jobs
+
+
+def reconstruct_segmented(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress: bool = True
+                          ) -> tuple[RoadMesh, dict]:
+    """Stage 1 on a long drive in segments; the blended mesh and the drive's metrics (``segments``: a row per
+    segment; ``seams``: how neighbouring segments agree where they overlap). Writes ``out_dir`` as
+    :func:`pavemap.mesh.reconstruct` does, plus ``out_dir/segments/NNN/`` per segment. Missing tiles are
+    computed here one by one, or all at once by the runner of :func:`pavemap.mesh.tiles.tiles_run_by`."""
+    from pavemap.mesh.outputs import write_outputs
+
+    t0 = time.perf_counter()
+    dp = plan_drive(seq, cfg)
+    notes = list(dp.notes)  # the drive's own warnings (the segments' are issued as they run)
+    views = [(f.index, v) for f in (seq.frames[p] for p in dp.pos) for v in f.views.values()]
     grid, _ = trajectory_grid(views, cfg, notes.append)
-    log.info("mesh: %.0f m of path in %d segments of ~%.0f m (overlap %.0f m), %d frames%s", s[-1], len(plans),
-             s[-1] / len(plans), cfg.segment_overlap_m, len(pos),
-             f", {sum(len(p.revisit) > 0 for p in plans)} with revisits" if any(p.revisit for p in plans) else "")
+    log.info("mesh: %.0f m of path in %d segments of ~%.0f m (overlap %.0f m), %d frames%s", dp.s[-1],
+             len(dp.plans), dp.s[-1] / len(dp.plans), cfg.segment_overlap_m, len(dp.pos),
+             f", {sum(len(p.revisit) > 0 for p in dp.plans)} with revisits" if any(p.revisit for p in dp.plans)
+             else "")
     for n in notes:
         warnings.warn(n, stacklevel=2)
+    runner = tiles.tile_runner() if out_dir is not None else None
+    fresh: dict[int, float] = {}  # segment index -> seconds, for tiles the runner computed now
+    if runner is not None:
+        jobs = tile_jobs(seq, cfg, dp, Path(out_dir))
+        for job, got in zip(jobs, runner(jobs), strict=True):
+            fresh[int(job.folder.name)] = got["seconds"]
+            for w in got["warnings"]:
+                warnings.warn(w, stacklevel=2)
     stitcher, rows, tiles_meta, seg_notes = Stitcher(grid.spec), [], None, []
-    bar = tqdm(plans, disable=not progress, desc="segments", unit="segment", dynamic_ncols=True)
-    for plan, lp in zip(bar, local, strict=True):
-        label = f"segment {plan.index + 1}/{len(plans)} (frames {seq.frames[plan.own[0]].index}-" \
-                f"{seq.frames[plan.own[-1]].index})"
-        stamp = _stamp(seq, plan, cfg, heldout)
+    conf = tiles.stamp_config(cfg)
+    bar = tqdm(dp.plans, disable=not progress, desc="segments", unit="segment", dynamic_ncols=True)
+    for plan, lp in zip(bar, dp.local, strict=True):
+        label = dp.label(seq, plan)
+        stamp = tile_stamp(conf, plan.to_dict(), seq, plan.positions, dp.heldout)
         folder = None if out_dir is None else Path(out_dir) / SEGMENTS_DIR / f"{plan.index:03d}"
         t_seg = time.perf_counter()
-        got = None if folder is None or not cfg.resume else _load_tile(folder, stamp)
+        got = None if folder is None or not (cfg.resume or plan.index in fresh) else tiles.load_tile(folder, stamp)
         if got is None:
-            tile, m = reconstruct_segment(seq, plan.positions, cfg, heldout, label)
+            tile, m = reconstruct_segment(seq, plan.positions, cfg, dp.heldout, label)
             if folder is not None:
-                _save_tile(folder, tile, m, stamp)
+                tiles.save_tile(folder, tile, m, stamp)
         else:
             tile, m = got
-            log.info("mesh: %s reused from %s", label, folder)
-        path_xy, path_s = own_path(traj[list(lp.own), :2], s[list(lp.own)])
+            if plan.index not in fresh:
+                log.info("mesh: %s reused from %s", label, folder)
+        path_xy, path_s = own_path(dp.traj[list(lp.own), :2], dp.s[list(lp.own)])
         w = segment_weights(_tile_grid(tile), path_xy, path_s, plan.core, cfg.segment_overlap_m,
                             cfg.crop_m + 2.0 * cfg.resolution)
         seam = stitcher.add(tile, w)
-        rows.append(_row(plan, s[list(lp.own)], m, time.perf_counter() - t_seg, got is not None, seam))
+        seconds = fresh.get(plan.index, time.perf_counter() - t_seg)
+        rows.append(_row(plan, dp.s[list(lp.own)], m, seconds, got is not None and plan.index not in fresh, seam))
         seg_notes += [f"segment {plan.index + 1}: {n}" for n in m.get("warnings", [])]
         tiles_meta = tiles_meta or (tile.class_ids, tile.has_semantics)
         bar.set_postfix(psnr=f"{m.get('psnr') or float('nan'):.2f}")
         del tile
     bar.close()
-    _drop_stale(out_dir, len(plans))
+    tiles.drop_stale(out_dir, len(dp.plans))
     mesh = stitcher.mesh(*tiles_meta)
-    metrics = _drive_metrics(seq, mesh, rows, notes + seg_notes, cfg, time.perf_counter() - t0, len(pos))
+    metrics = _drive_metrics(seq, mesh, rows, notes + seg_notes, cfg, time.perf_counter() - t0, len(dp.pos))
     if out_dir is not None:
         write_outputs(Path(out_dir), mesh, metrics, seq.classes if tiles_meta[1] else [])
     return mesh, metrics
@@ -268,18 +268,6 @@ def _tile_grid(tile: RoadMesh):
     from pavemap.mesh.model import MeshGrid
 
     return MeshGrid(tile.surface.grid, tile.surface.valid.cpu().numpy())
-
-
-def _drop_stale(out_dir: Path | None, n: int) -> None:
-    """Remove the tiles of an earlier plan with more segments (only the two files pavemap writes there)."""
-    if out_dir is None or not (Path(out_dir) / SEGMENTS_DIR).is_dir():
-        return
-    for folder in sorted((Path(out_dir) / SEGMENTS_DIR).iterdir()):
-        if folder.is_dir() and folder.name.isdigit() and int(folder.name) >= n and (folder / TILE_FILE).is_file():
-            for name in (TILE_FILE, "mesh.npz"):
-                (folder / name).unlink(missing_ok=True)
-            if not any(folder.iterdir()):
-                folder.rmdir()
 
 
 def _mean_psnr(rows: list[dict], key: str, n_key: str) -> float | None:

@@ -3,8 +3,9 @@
 Each drive is one task, :func:`run_drive`: a pure function of a small dict (the sequence folder, the
 run folder, the config as plain values) that runs :func:`pavemap.run` and returns a small dict. A task
 ships paths, never pixels: the worker reads the images from the (shared) drive folder and writes its
-run folder itself. A later segment task of a long drive (issue 17) takes the same form with a frame
-range added.
+run folder itself. On a cluster, a long drive's segments (issue 17) are tasks of their own,
+:func:`run_segment`, submitted by the drive's task: it computes the tiles its run lacks on every worker
+(:func:`pavemap.mesh.tiles.tiles_run_by`), then stitches them and goes on to stages 2 and 3.
 
 The client process is the only writer of the network's own files: ``network.json`` (the status of
 every drive, rewritten as each task ends), ``register.gpkg`` and ``network.html``, built after the
@@ -76,18 +77,57 @@ def thread_limit(n: int) -> Iterator[None]:
 
 
 def run_drive(task: dict) -> dict:
-    """One drive end to end on a worker: ``task`` = {name, seq, out, config (plain dict), threads}; returns
-    {name, run, defects, seconds, peak_rss_mb, pid, host}. Pure: the same task gives the same run folder."""
+    """One drive end to end on a worker: ``task`` = {name, seq, out, config (plain dict), threads, and
+    ``segment_tasks`` (bool): a long drive's segments as tasks of their own on the cluster}; returns {name,
+    run, defects, seconds, peak_rss_mb, pid, host, segments (one row per segment task it ran)}. Pure: the same
+    task gives the same run folder."""
     import socket
 
     import pavemap
+    from pavemap.mesh.tiles import tiles_run_by
 
     t = time.perf_counter()
-    with thread_limit(int(task.get("threads", 1))):
+    rows: list[dict] = []
+    runner = _cluster_tiles(int(task.get("threads", 1)), int(task.get("retries", DEFAULT_RETRIES)), rows) \
+        if task.get("segment_tasks") else None
+    with thread_limit(int(task.get("threads", 1))), (tiles_run_by(runner) if runner else contextlib.nullcontext()):
         result = pavemap.run(task["seq"], config_from_dict(task["config"]), task["out"], progress=False)
     return {"name": task["name"], "run": task["out"], "defects": len(result.defects),
             "seconds": round(time.perf_counter() - t, 3), "peak_rss_mb": round(peak_rss_mb(), 1),
-            "pid": os.getpid(), "host": socket.gethostname()}
+            "pid": os.getpid(), "host": socket.gethostname(), "segments": rows}
+
+
+def run_segment(job: object, threads: int = 1) -> dict:
+    """One segment tile of a long drive on a worker (:func:`pavemap.mesh.tiles.run_tile` on ``job``, a
+    TileJob); its result plus ``peak_rss_mb``, ``pid`` and ``host``."""
+    import socket
+
+    from pavemap.mesh.tiles import run_tile
+
+    with thread_limit(threads):
+        got = run_tile(job)  # type: ignore[arg-type]
+    return {**got, "peak_rss_mb": round(peak_rss_mb(), 1), "pid": os.getpid(), "host": socket.gethostname()}
+
+
+def _cluster_tiles(threads: int, retries: int, rows: list[dict]) -> Callable[[list], list[dict]]:
+    """A tile runner (:func:`pavemap.mesh.tiles.tiles_run_by`) that submits a drive's missing segment tiles as
+    tasks to the cluster this drive task runs on, and waits for them outside the worker's thread pool (so
+    that the segments, this drive's and other drives', run on every worker). ``rows`` collects them."""
+
+    def run(jobs: list) -> list[dict]:
+        from distributed import worker_client
+
+        if not jobs:
+            return []
+        with worker_client() as client:  # secedes from the worker's pool while the segments run
+            futures = [client.submit(run_segment, j, threads, key=f"segment-{j.stamp}", retries=retries, pure=False)
+                       for j in jobs]
+            got = client.gather(futures)
+        rows.extend({"segment": int(j.folder.name), "seconds": g["seconds"], "peak_rss_mb": g["peak_rss_mb"],
+                     "worker": f"{g['host']}:{g['pid']}"} for j, g in zip(jobs, got, strict=True))
+        return got
+
+    return run
 
 
 # ---------------------------------------------------------------------------- resuming
@@ -254,8 +294,8 @@ def _plan(manifest: Manifest, net: Path, previous: dict[str, dict], threads: int
         e["config_hash"] = config_hash(cfg)
         prev = previous.get(d.name) or {}
         if prev.get("config_hash") in (None, e["config_hash"]) and is_current(seq, cfg, run):
-            e.update(status="done", reused=True, **{k: prev[k] for k in ("seconds", "defects", "peak_rss_mb",
-                                                                         "worker") if k in prev})
+            kept = ("seconds", "defects", "peak_rss_mb", "worker", "segment_tasks")
+            e.update(status="done", reused=True, **{k: prev[k] for k in kept if k in prev})
             continue
         tasks.append({"name": d.name, "seq": str(d.path), "out": str(run), "config": cfg.to_dict(),
                       "config_hash": e["config_hash"], "threads": threads})
@@ -293,6 +333,8 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
     except PavemapError:
         previous = {}
     entries, tasks = _plan(manifest, net, previous, threads)
+    for task in tasks:  # on a cluster a long drive's segments are tasks of their own
+        task.update(segment_tasks=scheduler != "serial", retries=retries)
     by_name = {e["name"]: e for e in entries}
     mode = "serial" if scheduler == "serial" else (scheduler or "LocalCluster")
     extra: dict = {"scheduler": mode}
@@ -309,7 +351,13 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
             e.update(status="done", reused=False, seconds=result["seconds"], defects=result["defects"],
                      peak_rss_mb=result["peak_rss_mb"], worker=f"{result['host']}:{result['pid']}")
             e.pop("error", None)
-            echo(f"{e['name']}: done, {result['defects']} defects in {result['seconds']:.1f} s")
+            if result.get("segments"):
+                e["segment_tasks"] = result["segments"]
+            else:
+                e.pop("segment_tasks", None)
+            seg = result.get("segments") or []
+            on = f" ({len(seg)} segment tasks on {len({r['worker'] for r in seg})} workers)" if seg else ""
+            echo(f"{e['name']}: done, {result['defects']} defects in {result['seconds']:.1f} s{on}")
         else:
             e.update(status="failed", error=error)
             echo(f"{e['name']}: FAILED: {error}")
