@@ -2,7 +2,8 @@
 
 Drives: one synthetic kitti-like world (24 frames at 4 Hz, half-resolution images), driven in up to
 4 surveys by 2 vehicles (right and left lane): 8 distinct drives, of which the first 2, 4 and 8 make the
-three networks. Config: the test's light one (tests/test_network.py). Each (network, mode) runs in a fresh
+three networks; and one long drive of the same world (96 frames, ~215 m) in 25 m segments, to measure a long
+drive's segments as tasks. Config: the test's light one (tests/test_network.py). Each (network, mode) runs in a fresh
 process into a fresh network folder, so nothing is reused and each peak RSS is its own.
 
 Reported per network: wall seconds of the batch (serial: the drives one by one in one process, the same
@@ -49,6 +50,19 @@ def _drives(data: Path) -> list[dict]:
     return out
 
 
+LONG = {"frames": 96, "segment_m": 25.0, "overlap_m": 5.0}
+
+
+def _long_drive(data: Path) -> dict:
+    from pavemap.synth import synthesize
+    from test_network import WORLD
+
+    seq = data / "seqs" / "long"
+    if not (seq / "sequence.json").is_file():
+        synthesize(seq, **{**WORLD, "frames": LONG["frames"]}, overwrite=True)
+    return {"path": str(seq), "date": "2026-01-05", "name": "long", "vehicle": "van1"}
+
+
 def _one(mode: str, manifest: Path, net: Path) -> dict:
     """Run one batch in this (fresh) process; print its figures as JSON."""
     from pavemap.network.batch import run_batch
@@ -60,12 +74,14 @@ def _one(mode: str, manifest: Path, net: Path) -> dict:
     wall = time.perf_counter() - t
     peak: dict[str, float] = {}
     for e in s["drives"]:
-        peak[e.get("worker", "?")] = max(peak.get(e.get("worker", "?"), 0.0), float(e.get("peak_rss_mb") or 0))
+        for r in [e, *e.get("segment_tasks", [])]:
+            peak[r.get("worker", "?")] = max(peak.get(r.get("worker", "?"), 0.0), float(r.get("peak_rss_mb") or 0))
     reg = s.get("register") or {}
     return {"wall_s": round(wall, 2), "batch_s": s.get("batch_seconds"), "failed": s["failed"],
             "peak_rss_mb_per_worker": sorted(peak.values(), reverse=True), "register_s": reg.get("seconds"),
             "register_defects": reg.get("defects"), "observations": reg.get("observations"),
-            "drive_seconds": [e.get("seconds") for e in s["drives"]]}
+            "drive_seconds": [e.get("seconds") for e in s["drives"]],
+            "segment_tasks": sum(len(e.get("segment_tasks", [])) for e in s["drives"])}
 
 
 def _load() -> str:
@@ -77,7 +93,7 @@ def main() -> None:
     from test_network import OVERRIDES
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", default="2,4,8")
+    ap.add_argument("--sizes", default="2,4,8,long")
     ap.add_argument("--data", type=Path, default=Path("/tmp/pavemap-network-bench"))
     ap.add_argument("--results", type=Path, default=ROOT / "bench" / "results" / "network.json")
     ap.add_argument("--one", nargs=3, metavar=("MODE", "MANIFEST", "NET"), help=argparse.SUPPRESS)
@@ -89,10 +105,15 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
     rows = []
-    for n in (int(v) for v in a.sizes.split(",")):
+    for n in a.sizes.split(","):
         manifest = a.data / f"manifest-{n}.yaml"
-        manifest.write_text(json.dumps({"config": "kitti", "set": OVERRIDES, "drives": drives[:n]}))  # JSON is YAML
-        row: dict = {"drives": n, "load_before": _load()}
+        if n == "long":
+            over = [*OVERRIDES, f"mesh.segment_m={LONG['segment_m']}", f"mesh.segment_overlap_m={LONG['overlap_m']}"]
+            doc, row = {"config": "kitti", "set": over, "drives": [_long_drive(a.data)]}, {"drives": 1, "long": LONG}
+        else:
+            doc, row = {"config": "kitti", "set": OVERRIDES, "drives": drives[:int(n)]}, {"drives": int(n)}
+        manifest.write_text(json.dumps(doc))  # JSON is YAML
+        row["load_before"] = _load()
         for mode in ("serial", "dask-2-workers", "serial-all-threads"):
             net = a.data / f"net-{n}-{mode}"
             shutil.rmtree(net, ignore_errors=True)  # the bench's own folder: every drive is run afresh
