@@ -144,10 +144,15 @@ class RoadMeshModel(nn.Module):
     def num_vertices(self) -> int:
         return int(self.vertex_flat_ids.numel())
 
-    def heights(self, compact_ids: torch.Tensor | None = None, chunk: int = 65536) -> torch.Tensor:
-        """Heights (M,) of compact vertices ``compact_ids`` (all when None), world z."""
+    def heights(self, compact_ids: torch.Tensor | None = None, chunk: int | None = None) -> torch.Tensor:
+        """Heights (M,) of compact vertices ``compact_ids`` (all when None), world z.
+
+        Without autograd the MLP runs in chunks of ``chunk`` vertices (default: 4,096 on a CPU, where a
+        chunk's 128-wide activations then stay in cache: measured 2x faster than 65,536 on one core; 262,144
+        on a GPU, where fewer launches matter more)."""
         p = self.p_norm if compact_ids is None else self.p_norm[compact_ids]
         b = self.z_base if compact_ids is None else self.z_base[compact_ids]
+        chunk = chunk or (4096 if p.device.type == "cpu" else 1 << 18)
         if p.shape[0] <= chunk or torch.is_grad_enabled():
             return self.height_mlp(p) + b
         return torch.cat([self.height_mlp(p[s:s + chunk]) for s in range(0, p.shape[0], chunk)]) + b
@@ -160,9 +165,23 @@ class RoadMeshModel(nn.Module):
         return out.reshape(ny, nx, *values.shape[1:])
 
     @torch.no_grad()
+    def current_heights(self) -> torch.Tensor:
+        """(Nv,) heights of every kept vertex (no autograd), computed once per state of the height MLP and
+        ``z_base``: the fit reads the whole surface ~7 times between optimiser steps (baking, anchoring,
+        visibility, evaluation), each a full MLP pass (~40 % of a small drive's stage 1 without the cache).
+        The key is every input's storage and in-place version counter, so any change invalidates it."""
+        key = (*((q.data_ptr(), q._version) for q in self.height_mlp.parameters()),
+               (self.z_base.data_ptr(), self.z_base._version), (self.p_norm.data_ptr(), self.p_norm._version))
+        cached = self.__dict__.get("_heights_cache")
+        if cached is None or cached[0] != key:
+            cached = (key, self.heights())
+            self.__dict__["_heights_cache"] = cached
+        return cached[1]
+
+    @torch.no_grad()
     def dense_heights(self, fill: float) -> torch.Tensor:
         """(ny, nx) float32 current heights, ``fill`` off the crop (no autograd)."""
-        return self.dense(self.heights(), fill=fill).float()
+        return self.dense(self.current_heights(), fill=fill).float()
 
     def field(self, heights: torch.Tensor) -> HeightField:
         """Dense heights (ny, nx) (or flat (ny*nx,)) on this grid and crop, as a height field."""
@@ -174,7 +193,7 @@ class RoadMeshModel(nn.Module):
 def to_road_mesh(model: RoadMeshModel, class_ids: list[int], has_semantics: bool) -> RoadMesh:
     """Densify the trained model into a RoadMesh (CPU tensors)."""
     g = model.grid.spec
-    heights = model.dense(model.heights(), fill=0.0).float().cpu()
+    heights = model.dense(model.current_heights(), fill=0.0).float().cpu()
     rgb = model.dense(model.rgb.clamp(0, 1)).float().cpu()
     sem = model.dense(model.sem).float().cpu()
     surf = HeightField(g.x0, g.y0, g.res, heights, torch.from_numpy(model.grid.valid.copy()))
