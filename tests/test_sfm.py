@@ -35,10 +35,12 @@ def test_sfm_trajectory_on_synthetic_kitti_drive(tmp_path):
     cam = truth.cameras["CAM_FRONT"]
     (tmp_path / "cameras.json").write_text(json.dumps(
         {"cameras": {"CAM_FRONT": {"width": cam.width, "height": cam.height, "K": cam.K.tolist()}}}))
+    fps = 1.0 / (truth.frames[1].timestamp - truth.frames[0].timestamp)  # the speed check runs and passes
     seq = import_folder(tmp_path / "truth" / "images" / "CAM_FRONT", tmp_path / "cameras.json", "sfm",
-                        tmp_path / "seq", camera_height=MOUNT_HEIGHT)
+                        tmp_path / "seq", camera_height=MOUNT_HEIGHT, fps=fps)
     s = read_sequence(tmp_path / "seq")
     assert len(s.frames) == len(truth.frames)  # every frame registered
+    assert s.frames[3].timestamp == pytest.approx(3 / fps)
     est = np.stack([f.views["CAM_FRONT"].T_world_cam[:3, 3] for f in s.frames])
     gt = np.stack([f.views["CAM_FRONT"].T_world_cam[:3, 3] for f in truth.frames])
     path = float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum())
@@ -64,3 +66,41 @@ def test_sfm_rejects_too_few_images(tmp_path):
         sfm_poses([tmp_path / "a.png", tmp_path / "b.png"], cam)
     with pytest.raises(PavemapError, match="camera height must be positive"):
         sfm_poses([tmp_path / f"{i}.png" for i in range(3)], cam, camera_height=0)
+
+
+def _checked(C: np.ndarray, times: np.ndarray | None) -> dict:
+    from pavemap.io.sfm_checks import SfmChecks, check_sfm
+
+    info = {"registered": len(C), "keyframes": len(C), "reproj_px": 0.5}
+    return check_sfm(info, C, np.full(len(C), 1.5), SfmChecks(), times=times)
+
+
+def test_speed_check_passes_a_car_and_stops_a_jumping_path():
+    rng = np.random.default_rng(0)
+    t = np.arange(21) * 0.5  # nuScenes keyframes: 2 Hz
+    v = np.clip(9.0 - 1.5 * t, 2.0, None)  # braking at 1.5 m/s^2, then crawling
+    C = np.zeros((21, 3))
+    C[1:, 0] = np.cumsum(v[:-1] * 0.5)
+    f = _checked(C + rng.normal(0, 0.1, C.shape), t)  # SfM-sized position noise
+    assert f["max_accel_mps2"] < 3.0
+    # the step lengths SfM gave on the shared nuScenes clip (bench/results/sfm.json): 9 m, then 17 / 7.5 / 17 m
+    # half a second apart, then 5 cm: 20 m/s^2, no car's
+    steps = [9.32, 9.23, 9.29, 9.2, 17.05, 7.48, 17.13, 2.59, 1.8, 1.81, 0.05, 0.05, 0.34, 0.97, 11.92, 4.21, 11.68,
+             6.08, 5.71, 5.04]
+    J = np.zeros((21, 3))
+    J[1:, 0] = np.cumsum(steps)
+    with pytest.raises(PavemapError, match=r"speed changes by \d+\.\d m/s within one second .*not a car's"):
+        _checked(J, t)
+    # without frame times nothing is claimed about speed (the step-ratio check alone: 6.6 < 10 passes it)
+    assert _checked(J, None)["max_accel_mps2"] is None
+
+
+def test_fps_must_be_positive(tmp_path):
+    cam = {"width": 32, "height": 24, "K": [[30, 0, 16], [0, 30, 12], [0, 0, 1]]}
+    (tmp_path / "cameras.json").write_text(json.dumps({"cameras": {"c": cam}}))
+    (tmp_path / "img").mkdir()
+    from PIL import Image
+
+    Image.new("RGB", (32, 24)).save(tmp_path / "img" / "000000.png")
+    with pytest.raises(PavemapError, match="--fps must be a positive"):
+        import_folder(tmp_path / "img", tmp_path / "cameras.json", "sfm", tmp_path / "seq", fps=0)

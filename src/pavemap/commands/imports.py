@@ -164,6 +164,9 @@ def folder_cmd(
         "or a mask image (white = ego); kept out of SfM, stored as masks/<camera>.png."),
     refine_intrinsics: bool = typer.Option(
         False, "--refine-intrinsics", help="SfM refines nominal focal length and principal point."),
+    fps: float | None = typer.Option(
+        None, "--fps", help="Frames per second of the images (e.g. 2 for nuScenes keyframes): frame times, and "
+        "SfM's path checked against a car's speed changes."),
 ) -> None:
     """Own drive: images + cameras.json + poses.csv (or --poses sfm) → sequence folder.
 
@@ -172,7 +175,7 @@ def folder_cmd(
 
     seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height,
                         geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm), ego_mask=ego_mask,
-                        refine_intrinsics=refine_intrinsics)
+                        refine_intrinsics=refine_intrinsics, fps=fps)
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device))
 
 

@@ -233,18 +233,23 @@ def import_folder(
     classes: list[SemanticClass] | None = None, geo: GeoInput | None = None,
     ego_mask: str | os.PathLike | None = None,
     refine_intrinsics: bool = False,
+    fps: float | None = None,
 ) -> Sequence:
     """Import an own drive: images + cameras.json + poses.csv (or ``poses="sfm"``) → sequence folder.
 
     ``ego_mask``: "auto" (found in the images; the default with ``poses="sfm"``), "none", or a mask image
     (white = ego vehicle); stored as ``masks/<camera>.png``. ``refine_intrinsics``: SfM refines the
     nominal focal length and principal point (written to the sequence's camera). ``geo``: GPS or a
-    hand-given origin (:mod:`pavemap.geo.attach`); lat/lon columns of poses.csv are GPS too."""
+    hand-given origin (:mod:`pavemap.geo.attach`); lat/lon columns of poses.csv are GPS too. ``fps``: the
+    images are frames this many per second apart (frame times where poses.csv gives none; with SfM the
+    path's speed changes are checked against a car's)."""
     from tqdm import tqdm
 
     images_dir, out = Path(images_dir), Path(out)
     cameras = read_cameras_json(cameras_json)
     per_cam = _camera_images(images_dir, cameras)
+    if fps is not None and not fps > 0:
+        raise PavemapError(f"--fps must be a positive number of frames per second, got {fps}")
 
     if str(poses).lower() == "sfm":
         if len(cameras) != 1:
@@ -254,7 +259,8 @@ def import_folder(
 
         ego, _ = resolve_ego_mask(ego_mask, per_cam[cam.name], cam.width, cam.height, default_auto=True)
         res = sfm_poses(per_cam[cam.name], cam, camera_height=camera_height, ego_mask=ego,
-                        refine_intrinsics=refine_intrinsics)
+                        refine_intrinsics=refine_intrinsics,
+                        times=None if fps is None else np.arange(len(per_cam[cam.name])) / fps)
         if refine_intrinsics and res.K is not None:
             cam.K = res.K
         egos = {cam.name: ego}
@@ -297,7 +303,7 @@ def import_folder(
             if (w, h) != (c.width, c.height):
                 raise SequenceError(src, f"image is {w}x{h}, cameras.json says {cam} is {c.width}x{c.height}")
             rel = f"images/{cam}/{r.frame:06d}{src.suffix.lower()}"
-            ts = r.timestamp if r.timestamp is not None else float(r.frame)
+            ts = r.timestamp if r.timestamp is not None else (r.frame / fps if fps else float(r.frame))
             f = frames.setdefault(r.frame, Frame(r.frame, ts, {}))
             if cam in f.views:
                 raise SequenceError(poses_file, f"frame {r.frame} camera {cam!r} appears twice")
@@ -422,7 +428,7 @@ def import_video(
         from pavemap.io.sfm import sfm_poses
 
         ego, _ = resolve_ego_mask(None, paths, cam.width, cam.height, default_auto=True)  # bonnet: kept out of SfM
-        res = sfm_poses(paths, cam, camera_height=camera_height, ego_mask=ego)
+        res = sfm_poses(paths, cam, camera_height=camera_height, ego_mask=ego, times=times)
         Ts = res.T_world_cam
         for i in np.nonzero(~res.registered)[0]:  # frames SfM could not register are dropped
             paths[i].unlink(missing_ok=True)

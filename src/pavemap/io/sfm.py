@@ -22,7 +22,8 @@ Steps (:func:`sfm_poses`):
 4. Axes: world z = up, x = the driving direction, origin = the first camera's foot
    point on the road (road at z ≈ 0).
 5. Sanity checks (:func:`pavemap.io.sfm_checks.check_sfm`): registered share, reprojection error,
-   smoothness of the path and a constant camera height along it, else a clear error.
+   smoothness of the path (turns, step ratios and, with frame times, speed changes within a car's ~1 g)
+   and a constant camera height along it, else a clear error.
 """
 
 from __future__ import annotations
@@ -198,7 +199,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
               overlap: int = 10, num_threads: int = 1, max_features: int = 8192, min_registered: float = 0.6,
               seed: int = 0, peak_threshold: float = 0.003, verbose: bool = False, ego_mask: np.ndarray | None = None,
               refine_intrinsics: bool = False, min_parallax: float = 0.002, init_min_tri_angle: float = 2.0,
-              checks: SfmChecks | None = None, dense_scale: bool = True) -> SfmResult:
+              checks: SfmChecks | None = None, dense_scale: bool = True,
+              times: np.ndarray | None = None) -> SfmResult:
     """Metric z-up camera-to-world poses (N, 4, 4) for ``images`` (video order) of one ``camera``.
 
     ``ego_mask`` (H, W) bool, True on the ego vehicle: no features there. ``refine_intrinsics``: the
@@ -206,7 +208,9 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     ``min_parallax``: keyframe threshold (share of the width, 0 = every frame). ``checks``: limits of
     the sanity checks (``min_registered`` overrides its share). ``dense_scale``: refine the scale
     from densely matched road points (:mod:`pavemap.io.sfm_scale`; sparse SIFT rarely lands on
-    asphalt). Raises PavemapError with a clear line when SfM fails or its result fails a check.
+    asphalt). ``times`` (N,) s of the images, when known (a video's frame rate): the path's speed changes
+    are checked too (``SfmChecks.max_accel_mps2``). Raises PavemapError with a clear line when SfM fails
+    or its result fails a check.
     """
     try:
         import pycolmap
@@ -245,8 +249,10 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
             res.info["intrinsics_refinement"] = o["intrinsics"]
         if dense_scale:
             _dense_rescale(res, images, camera, camera_height, ego_mask)
+        if times is not None and len(times) != len(images):
+            raise PavemapError(f"SfM: {len(times)} frame times for {len(images)} images")
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
-                                       checks, hint)
+                                       checks, hint, None if times is None else np.asarray(times)[res.registered])
         _fill_between_keyframes(res, keyframes)
         log.info("SfM: %s", res.info)
         return res

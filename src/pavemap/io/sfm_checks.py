@@ -25,6 +25,10 @@ class SfmChecks:
     - ``max_turn_deg``: largest heading change between consecutive steps of the path.
     - ``max_step_ratio``: largest ratio of consecutive step lengths (a car does not teleport); steps
       under a quarter of the median (stop and go) are left out.
+    - ``max_accel_mps2``: largest change of the path's speed per second, where the frame times are known
+      (a video's frame rate, ``--fps``): speeds are averaged over ``accel_window_s`` so that the SfM
+      positions' noise (~0.1 m) stays ~0.2 m/s² of it. No car brakes or accelerates by more than ~1 g;
+      the same limit holds at a wrong scale of ±50 %, which the camera height fixes anyway.
     - ``max_height_dev``: largest deviation of the 10th / 90th percentile of the per-camera heights over
       the road from their median, as a share of it (the mount does not move: a wandering height means
       a wrong geometry). Per-camera heights from local road planes are noisy on smooth real asphalt
@@ -35,6 +39,8 @@ class SfmChecks:
     max_reproj_px: float = 2.0
     max_turn_deg: float = 30.0
     max_step_ratio: float = 10.0
+    max_accel_mps2: float = 10.0
+    accel_window_s: float = 1.0
     max_height_dev: float = 0.2
 
 
@@ -101,11 +107,32 @@ def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float)
     return out
 
 
-def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks, hint: str = "") -> dict:
+def path_acceleration(C: np.ndarray, times: np.ndarray, window_s: float) -> tuple[float, float] | None:
+    """Largest |change of speed| per second along the path ``C`` (R, 3) m at ``times`` (R,) s, and the time
+    (s) where it starts: speeds are path length over ``window_s``, compared one window apart. None when the
+    path spans less than two windows or the times do not increase."""
+    t = np.asarray(times, dtype=np.float64)
+    if len(t) < 3 or not np.all(np.diff(t) > 0) or t[-1] - t[0] < 2 * window_s:
+        return None
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(C, axis=0), axis=1))])
+
+    def speed(a: np.ndarray) -> np.ndarray:
+        return (np.interp(a + window_s, t, s) - np.interp(a, t, s)) / window_s
+
+    start = t[t + 2 * window_s <= t[-1] + 1e-9]
+    acc = np.abs(speed(start + window_s) - speed(start)) / window_s
+    k = int(np.argmax(acc))
+    return float(acc[k]), float(start[k])
+
+
+def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks, hint: str = "",
+              times: np.ndarray | None = None) -> dict:
     """Measure the trajectory ``C`` (R, 3, metric) and per-camera ``heights`` (R,) m; raise on a failed check.
+    ``times`` (R,) s of the cameras, when known (a video's frame rate): the speed changes are checked too.
 
     Returns the figures (also on success): ``registered_share``, ``reproj_px``, ``max_turn_deg``,
-    ``max_step_ratio``, ``height_dev`` (10th/90th percentile vs median), ``height_range_m``, ``height_p10_p90_m``.
+    ``max_step_ratio``, ``max_accel_mps2`` (None without times), ``height_dev`` (10th/90th percentile vs
+    median), ``height_range_m``, ``height_p10_p90_m``.
     """
     steps = np.diff(C, axis=0)
     L = np.linalg.norm(steps, axis=1)
@@ -125,11 +152,13 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
     # which a wrong geometry (a drifting height) widens and a few noisy cameras do not
     p10, p90 = (float(np.percentile(h, q)) for q in (10, 90)) if h.size else (float("nan"),) * 2
     dev = max(p90 - med, med - p10) / med if h.size else float("inf")
+    acc = path_acceleration(C, times, checks.accel_window_s) if times is not None else None
     figures = {
         "registered_share": round(info["registered"] / max(1, info["keyframes"]), 3),
         "reproj_px": round(float(info["reproj_px"]), 3),
         "max_turn_deg": round(turn, 2),
         "max_step_ratio": round(ratio, 2),
+        "max_accel_mps2": None if acc is None else round(acc[0], 2),
         "height_dev": round(dev, 4),
         "height_range_m": [round(float(h.min()), 3), round(float(h.max()), 3)] if h.size else None,
         "height_p10_p90_m": [round(p10, 3), round(p90, 3)] if h.size else None,
@@ -148,6 +177,11 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
     if ratio > checks.max_step_ratio:
         raise PavemapError(f"SfM sanity check failed: one step of the path is {ratio:.1f}× the previous one "
                            f"(> {checks.max_step_ratio}): the trajectory jumps{tail}")
+    if acc is not None and acc[0] > checks.max_accel_mps2:
+        raise PavemapError(f"SfM sanity check failed: the path's speed changes by {acc[0]:.1f} m/s within one "
+                           f"second {acc[1]:.1f}-{acc[1] + 2 * checks.accel_window_s:.1f} s into the drive "
+                           f"(> {checks.max_accel_mps2:g} m/s², about 1 g): the trajectory is not a car's; "
+                           f"frames are mis-registered{tail}")
     if h.size < max(3, len(C) // 3) or dev > checks.max_height_dev:
         why = (f"the camera height over the road varies by {dev:.0%} along the path"
                if h.size >= 3 else f"the road under the path was found below only {h.size} of {len(C)} cameras")
@@ -156,4 +190,4 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
     return figures
 
 
-__all__ = ["SfmChecks", "camera_heights", "check_sfm", "select_keyframes"]
+__all__ = ["SfmChecks", "camera_heights", "check_sfm", "path_acceleration", "select_keyframes"]
