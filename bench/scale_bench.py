@@ -6,7 +6,8 @@ process under ``/usr/bin/time -v`` (peak RSS of the whole run). Per drive: stage
 held-out PSNR, height RMSE, F1; per segment: height RMSE and F1 on the road it owns; the seams (how neighbouring
 segments agree where they overlap) and the defects split at seams. ``--whole N`` also runs drive N as one
 piece (``mesh.segment_m=0``), the path before this issue; ``--cut N:M`` also runs drive N in segments of M m
-(the same data one piece and cut: what segmenting costs). Writes ``bench/results/scale.json``.
+(the same data one piece and cut: what segmenting costs). Writes ``bench/results/scale.json``, keeping the rows
+this run did not redo (each row names its commit), so ``--frames 4541 --cut`` adds the long row alone.
 
     python bench/scale_bench.py --frames 300 1200 --cut 300:75 [--whole 1200] [--scale 0.5]
 """
@@ -141,6 +142,22 @@ def row(seq: Path, out: Path, frames: int, got: dict, synth_s: float | None, seg
             "split_defects": split, "per_segment": segs}
 
 
+def _merged(rows: list[dict], commit: str) -> list[dict]:
+    """This run's rows (each stamped with ``commit``, the machine's load when it ended) plus the rows of the
+    results file that it did not rerun (frames, variant), which keep their own commit (the file's, for rows
+    written before rows carried one): a long row can be measured on its own without losing the others."""
+    for r in rows:
+        r.setdefault("commit", commit)
+    try:
+        old = json.loads(OUT.read_text())
+    except (OSError, ValueError):
+        return rows
+    done = {(r["frames"], r["variant"]) for r in rows}
+    kept = [{**r, "commit": r.get("commit", old.get("commit"))} for r in old.get("rows", [])
+            if (r.get("frames"), r.get("variant")) not in done]
+    return sorted(kept + rows, key=lambda r: (r["frames"], r["variant"] != "default", r["variant"]))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, nargs="+", default=[300, 1200])
@@ -161,9 +178,11 @@ def main() -> None:
         for name, sets in variants:
             out = args.data / f"scale-run-{n}-{name}"
             got = run(seq, out, sets)
-            rows.append({"variant": name, "sets": sets, **row(seq, out, n, got, synth_s, name != "whole")})
+            rows.append({"variant": name, "sets": sets, **row(seq, out, n, got, synth_s, name != "whole"),
+                         "load_avg_end": [round(x, 2) for x in os.getloadavg()]})
             print(json.dumps({k: v for k, v in rows[-1].items() if k != "per_segment"}), flush=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    rows = _merged(rows, commit.strip())
     seg = [r for r in rows if r["variant"] == "default"]
     spf = [r["stage1_s_per_frame"] for r in seg]
     write_results(OUT, {

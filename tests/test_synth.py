@@ -225,3 +225,16 @@ def test_synth_on_a_missing_gpu_is_a_clear_error(tmp_path, monkeypatch):
     assert res.exit_code == 2, res.output
     assert "error: device 'cuda'" in res.output and "CUDA" in res.output
     assert not (tmp_path / "x").exists()
+
+
+def test_exposure_drift_stays_bounded_on_a_kilometres_long_drive():
+    from pavemap.synth.generate import exposure_drift
+
+    rng = np.random.default_rng(3)
+    long = np.log(exposure_drift(rng.normal(0, 0.04, 4541)))  # KITTI-00's length
+    assert long.std() < 0.4 and np.abs(long).max() < 1.2  # a plain walk reaches ~2.7 here (15x gains)
+    steps = rng.normal(0, 0.04, 24)
+    short = np.log(exposure_drift(steps))
+    walk = np.cumsum(steps)
+    assert np.abs(short - (walk - walk.mean())).max() < 0.03  # a short drive drifts as before
+    assert exposure_drift(np.zeros(0)).shape == (0,)

@@ -103,6 +103,22 @@ def synthesize(out: Path, preset: str = "nuscenes-like", seed: int = 0, frames: 
     return seq
 
 
+def exposure_drift(steps: np.ndarray, tau_frames: float = 100.0) -> np.ndarray:
+    """(F,) exposure gains from per-frame log-gain steps (F,): an auto-exposure's lag, which drifts but keeps
+    coming back (a mean-reverting AR(1) walk with a correlation time of ``tau_frames``; log-gain sd 0.28 for
+    steps of 0.04), centred on a mean log-gain of 0.
+
+    Why not a plain random walk: its spread grows with the drive, 0.04 x sqrt(4,541) = 2.7 in log-gain along
+    KITTI-00, so frames came out 15x over- or under-exposed (road white, held-out PSNR 9 dB)."""
+    from scipy.signal import lfilter
+
+    steps = np.asarray(steps, dtype=np.float64)
+    if not len(steps):
+        return steps
+    log_gain = lfilter([1.0], [1.0, -float(np.exp(-1.0 / tau_frames))], steps)  # x_k = rho x_(k-1) + e_k
+    return np.exp(log_gain - log_gain.mean())
+
+
 def _render_sequence(world: World, root: Path, scale: float, depth: str, dev, progress: bool, tqdm) -> Sequence:
     p = world.params
     cams = rig_cameras(p.preset, scale)
@@ -110,8 +126,7 @@ def _render_sequence(world: World, root: Path, scale: float, depth: str, dev, pr
     rng = np.random.default_rng([p.seed, 5])
     poses, ts = vehicle_poses(world, rng)
     # exposure drifts smoothly from frame to frame; each camera has its own white balance
-    walk = np.cumsum(rng.normal(0, 0.04, len(ts)))
-    exposure = np.exp(walk - walk.mean()) * 1.0
+    exposure = exposure_drift(rng.normal(0, 0.04, len(ts)))
     wb = {m.name: tuple(float(v) for v in 1 + rng.normal(0, 0.015, 3)) for m in mounts}
     frames: list[Frame] = []
     rings: dict[str, tuple[np.ndarray, np.ndarray]] = {}
