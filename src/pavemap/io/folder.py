@@ -224,16 +224,10 @@ def _camera_images(images_dir: Path, cameras: dict[str, Camera]) -> dict[str, li
 
 
 def import_folder(
-    images_dir: str | os.PathLike,
-    cameras_json: str | os.PathLike,
-    poses: str | os.PathLike,
-    out: str | os.PathLike,
-    name: str | None = None,
-    camera_height: float = 1.5,
+    images_dir: str | os.PathLike, cameras_json: str | os.PathLike, poses: str | os.PathLike,
+    out: str | os.PathLike, name: str | None = None, camera_height: float = 1.5,
     classes: list[SemanticClass] | None = None, geo: GeoInput | None = None,
-    ego_mask: str | os.PathLike | None = None,
-    refine_intrinsics: bool = False,
-    fps: float | None = None,
+    ego_mask: str | os.PathLike | None = None, refine_intrinsics: bool = False, fps: float | None = None,
 ) -> Sequence:
     """Import an own drive: images + cameras.json + poses.csv (or ``poses="sfm"``) → sequence folder.
 
