@@ -143,9 +143,9 @@ def row(seq: Path, out: Path, frames: int, got: dict, synth_s: float | None, seg
 
 
 def _merged(rows: list[dict], commit: str) -> list[dict]:
-    """This run's rows (each stamped with ``commit``, the machine's load when it ended) plus the rows of the
-    results file that it did not rerun (frames, variant), which keep their own commit (the file's, for rows
-    written before rows carried one): a long row can be measured on its own without losing the others."""
+    """This run's rows (each stamped with ``commit``) plus the rows of the results file that it did not rerun
+    (frames, variant), which keep their own commit (the file's, for rows written before rows carried one): a
+    long row can be measured on its own without losing the others."""
     for r in rows:
         r.setdefault("commit", commit)
     try:

@@ -66,6 +66,8 @@ def test_sfm_rejects_too_few_images(tmp_path):
         sfm_poses([tmp_path / "a.png", tmp_path / "b.png"], cam)
     with pytest.raises(PavemapError, match="camera height must be positive"):
         sfm_poses([tmp_path / f"{i}.png" for i in range(3)], cam, camera_height=0)
+    with pytest.raises(PavemapError, match="2 frame times for 3 images"):  # before any SfM work
+        sfm_poses([tmp_path / f"{i}.png" for i in range(3)], cam, times=np.zeros(2))
 
 
 def _checked(C: np.ndarray, times: np.ndarray | None) -> dict:

@@ -223,6 +223,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     if ego_mask is not None and ego_mask.shape != (camera.height, camera.width):
         raise PavemapError(f"ego mask is {ego_mask.shape[1]}x{ego_mask.shape[0]}, camera {camera.name} is "
                            f"{camera.width}x{camera.height}")
+    if times is not None and len(times) != len(images):
+        raise PavemapError(f"SfM: {len(times)} frame times for {len(images)} images")
     checks = checks or SfmChecks(min_registered=min_registered)
     images = [Path(p) for p in images]
     keyframes = select_keyframes(images, min_parallax, ego_mask) if min_parallax > 0 else np.ones(len(images), bool)
@@ -249,8 +251,6 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
             res.info["intrinsics_refinement"] = o["intrinsics"]
         if dense_scale:
             _dense_rescale(res, images, camera, camera_height, ego_mask)
-        if times is not None and len(times) != len(images):
-            raise PavemapError(f"SfM: {len(times)} frame times for {len(images)} images")
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
                                        checks, hint, None if times is None else np.asarray(times)[res.registered])
         _fill_between_keyframes(res, keyframes)

@@ -27,7 +27,7 @@ class SfmChecks:
       under a quarter of the median (stop and go) are left out.
     - ``max_accel_mps2``: largest change of the path's speed per second, where the frame times are known
       (a video's frame rate, ``--fps``): speeds are averaged over ``accel_window_s`` so that the SfM
-      positions' noise (~0.1 m) stays ~0.2 m/s² of it. No car brakes or accelerates by more than ~1 g;
+      positions' noise (~0.1 m) stays ~0.6 m/s² of it at 2 Hz. No car brakes or accelerates by more than ~1 g;
       the same limit holds at a wrong scale of ±50 %, which the camera height fixes anyway.
     - ``max_height_dev``: largest deviation of the 10th / 90th percentile of the per-camera heights over
       the road from their median, as a share of it (the mount does not move: a wandering height means
