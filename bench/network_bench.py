@@ -3,17 +3,21 @@
 Drives: one synthetic kitti-like world (24 frames at 4 Hz, half-resolution images), driven in up to
 4 surveys by 2 vehicles (right and left lane): 8 distinct drives, of which the first 2, 4 and 8 make the
 three networks; and one long drive of the same world (96 frames, ~215 m) in 25 m segments, to measure a long
-drive's segments as tasks. Config: the test's light one (tests/test_network.py). Each (network, mode) runs in a fresh
-process into a fresh network folder, so nothing is reused and each peak RSS is its own.
+drive's segments as tasks. Config (``--config``): the kitti preset's defaults (-> network.json) or the test's
+light one (tests/test_network.py; -> network-light.json), figures, report pages and overlays off in both. Each
+(network, mode) runs in a fresh process into a fresh network folder, so nothing is reused and each peak RSS is
+its own.
 
 Reported per network: wall seconds of the batch (serial: the drives one by one in one process, the same
 task function with every thread pool at one thread, as on a worker; serial-all-threads: the same with the
 process's default threads, what one drive after another on both cores gives; dask: including the
-cluster's start), speedup (serial / dask, and serial-all-threads / dask), peak RSS per worker
+cluster's start and close), ``process_s`` (the whole process: imports and exit too, what a user waits),
+speedup (serial / dask, of both, and serial-all-threads / dask), peak RSS per worker
 process (MiB, from the tasks' ``getrusage``), register build time, and the machine's load (``uptime``)
 before and after, since the 2 cores are shared.
 
-    nice -n 10 .venv/bin/python bench/network_bench.py [--sizes 2,4,8] [--data /tmp/pavemap-network-bench]
+    nice -n 10 .venv/bin/python bench/network_bench.py [--config default|light] [--sizes 2,4,8,long]
+        [--data /tmp/pavemap-network-bench]
 """
 
 from __future__ import annotations
@@ -50,6 +54,10 @@ def _drives(data: Path) -> list[dict]:
     return out
 
 
+# The test's light settings (1 mesh epoch, 10 % render scale: ~12 s a drive, startup-bound) and the preset's
+# defaults (~20 s a drive, what `pavemap batch` runs); figures, report pages and overlays off in both.
+CONFIGS = {"light": None, "default": ["device=cpu", "output.figures=false", "output.report=false",
+                                       "output.overlay_frames=0"]}
 LONG = {"frames": 96, "segment_m": 25.0, "overlap_m": 5.0}
 
 
@@ -94,40 +102,52 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="2,4,8,long")
+    ap.add_argument("--config", choices=sorted(CONFIGS), default="default",
+                    help="drive settings: the preset's defaults, or the test's light ones (startup-bound)")
     ap.add_argument("--data", type=Path, default=Path("/tmp/pavemap-network-bench"))
-    ap.add_argument("--results", type=Path, default=ROOT / "bench" / "results" / "network.json")
+    ap.add_argument("--results", type=Path, help="default: bench/results/network.json (network-light.json)")
     ap.add_argument("--one", nargs=3, metavar=("MODE", "MANIFEST", "NET"), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.one:
+        from pavemap.shutdown import prepare_quick_exit
+
         print(json.dumps(_one(a.one[0], Path(a.one[1]), Path(a.one[2]))))
+        prepare_quick_exit()  # as the CLI does: process_s is what a user of `pavemap batch` waits
         return
+    results = a.results or ROOT / "bench" / "results" / ("network.json" if a.config == "default" else
+                                                         "network-light.json")
     drives = _drives(a.data)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
+    base = CONFIGS[a.config] or OVERRIDES
     rows = []
     for n in a.sizes.split(","):
         manifest = a.data / f"manifest-{n}.yaml"
         if n == "long":
-            over = [*OVERRIDES, f"mesh.segment_m={LONG['segment_m']}", f"mesh.segment_overlap_m={LONG['overlap_m']}"]
+            over = [*base, f"mesh.segment_m={LONG['segment_m']}", f"mesh.segment_overlap_m={LONG['overlap_m']}"]
             doc, row = {"config": "kitti", "set": over, "drives": [_long_drive(a.data)]}, {"drives": 1, "long": LONG}
         else:
-            doc, row = {"config": "kitti", "set": OVERRIDES, "drives": drives[:int(n)]}, {"drives": int(n)}
+            doc, row = {"config": "kitti", "set": base, "drives": drives[:int(n)]}, {"drives": int(n)}
         manifest.write_text(json.dumps(doc))  # JSON is YAML
         row["load_before"] = _load()
         for mode in ("serial", "dask-2-workers", "serial-all-threads"):
             net = a.data / f"net-{n}-{mode}"
             shutil.rmtree(net, ignore_errors=True)  # the bench's own folder: every drive is run afresh
+            t = time.perf_counter()
             p = subprocess.run([sys.executable, __file__, "--one", mode, str(manifest), str(net)],
                                capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+            process_s = round(time.perf_counter() - t, 2)
             if p.returncode:
                 raise SystemExit(f"{mode} with {n} drives failed:\n{p.stderr[-3000:]}")
-            row[mode] = json.loads(p.stdout.strip().splitlines()[-1])
+            row[mode] = {**json.loads(p.stdout.strip().splitlines()[-1]), "process_s": process_s}
             print(n, mode, row[mode], flush=True)
         row["speedup"] = round(row["serial"]["wall_s"] / row["dask-2-workers"]["wall_s"], 2)
+        row["speedup_process"] = round(row["serial"]["process_s"] / row["dask-2-workers"]["process_s"], 2)
         row["speedup_vs_all_threads"] = round(row["serial-all-threads"]["wall_s"] / row["dask-2-workers"]["wall_s"], 2)
         row["load_after"] = _load()
         rows.append(row)
-    write_results(a.results, {**machine_entry(), "commit": commit, "target_speedup": 1.7, "networks": rows,
+    write_results(results, {**machine_entry(), "commit": commit, "config": a.config, "set": base,
+                            "target_speedup": 1.7, "networks": rows,
                               "note": "2-core machine shared with other jobs; see load_before/after"})
 
 

@@ -22,6 +22,7 @@ from typer.core import TyperGroup
 
 from pavemap import __version__
 from pavemap.errors import PavemapError, SequenceError
+from pavemap.shutdown import prepare_quick_exit
 
 USER_ERRORS = (SequenceError, PavemapError, OSError)  # what ends a command with one line, exit status 2
 #: How a failed read or write is worded, by errno (the rest: the system's own words).
@@ -133,7 +134,10 @@ for _name in COMMAND_MODULES:
 
 
 def main() -> None:
-    app()
+    try:
+        app()
+    finally:
+        prepare_quick_exit()
 
 
 if __name__ == "__main__":

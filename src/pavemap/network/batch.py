@@ -218,6 +218,9 @@ def cluster(scheduler: str | None, workers: int | None, memory_limit: str, retri
                               dashboard_address=":0", silence_logs=logging.ERROR)
             client = Client(lc)
     try:
+        from pavemap.network.plugins import QuickExit
+
+        client.register_plugin(QuickExit(), name=QuickExit.name)
         if importlib.util.find_spec("bokeh") is not None:
             echo(f"dashboard: {client.dashboard_link}")
         else:
