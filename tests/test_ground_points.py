@@ -142,3 +142,34 @@ def test_check_residuals_thresholds():
     assert check_residuals(r + 0.08).flagged
     assert check_residuals(np.random.default_rng(2).normal(0.0, 0.3, 500)).flagged
     assert check_residuals(r[:5]).flagged
+
+
+def test_range_mask_is_the_per_pixel_ray_test():
+    """The broadcast mask equals the ray-by-ray definition: below the horizon margin, on the prior plane
+    within [min_range, max_range] (skewed intrinsics, tilted and rolled cameras, one looking up)."""
+    from scipy.spatial.transform import Rotation
+
+    from pavemap.mesh.ground_points import _range_mask
+    from pavemap.types import Camera
+
+    cam = Camera("c", 64, 40, np.array([[50.0, 0.7, 31.0], [0.0, 48.0, 19.5], [0.0, 0.0, 1.0]]))
+    cfg = GroundConfig()
+    v, u = np.mgrid[0:40, 0:64]
+    rays = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3).astype(float) @ np.linalg.inv(cam.K).T
+    forward = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float).T  # camera z along world x
+    rng = np.random.default_rng(3)
+    seen = 0
+    for pitch in (0.0, 0.2, -0.4, -1.2):  # -1.2: mostly sky
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", [rng.normal(0, 0.05), pitch, rng.normal(0, 2)]).as_matrix() @ forward
+        d = rays @ T[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        below = d[:, 2] < -np.sin(np.radians(cfg.horizon_margin_deg))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ground = cfg.prior_height / -d[:, 2] * np.linalg.norm(d[:, :2], axis=1)
+        want = (below & (ground >= cfg.min_range) & (ground <= cfg.max_range)).reshape(40, 64)
+        got = _range_mask(cam, T, cfg)
+        assert got.shape == (40, 64) and got.dtype == bool
+        assert np.array_equal(got, want), int((got != want).sum())
+        seen += int(want.sum())
+    assert 0 < seen < 4 * 64 * 40

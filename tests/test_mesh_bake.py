@@ -191,3 +191,24 @@ def test_pixels_of_a_passing_vehicle_are_left_out(seq):
     after = bake_colours(surf, painted.subset(keep), painted.T, 60.0)[0]
     red = lambda t: float((t[..., 0] - t[..., 1]).mean())  # noqa: E731
     assert on_car.all() and red(after) < red(before)
+
+
+def test_initial_bake_reusing_the_visible_pixel_march_changes_nothing(seq, monkeypatch):
+    """The initial bake takes the march visible_pixels made on the same surface: the same mesh as marching
+    again, to the bit (and the march is really reused: one march fewer)."""
+    import pavemap.mesh.bake as bake
+    import pavemap.mesh.train as train
+
+    cfg = dict(resolution=0.1, crop_m=4.0, epochs=1, render_scale=1.0, eval_scale=1.0, pixels_per_step=512,
+               holdout_every=3, device="cpu", threads=1, resume=False)
+    marches = []
+    real_march = bake.march_pool
+    monkeypatch.setattr(bake, "march_pool", lambda *a, **k: marches.append(1) or real_march(*a, **k))
+    mesh_reused, _ = reconstruct(seq, None, MeshConfig(**cfg), progress=False)
+    reused = len(marches)
+    real_visible = train.visible_pixels
+    monkeypatch.setattr(train, "visible_pixels", lambda *a, **k: real_visible(*a, **{**k, "keep_hits": False}))
+    mesh_again, _ = reconstruct(seq, None, MeshConfig(**cfg), progress=False)
+    assert len(marches) - reused == reused + 1  # the initial bake marched again (the final bake always does)
+    assert torch.equal(mesh_reused.rgb, mesh_again.rgb)
+    assert torch.equal(mesh_reused.surface.heights, mesh_again.surface.heights)

@@ -37,7 +37,7 @@ def _gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     return y.reshape(c, *x.shape[1:])
 
 
-def _pool_hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, batch: int
+def pool_hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, batch: int
                ) -> Iterator[tuple[slice, torch.Tensor, torch.Tensor, torch.Tensor]]:
     """Per batch of pool pixels that hit the surface: (the batch's slice, hit rows (M,) within it, their
     triangles' flat vertex ids (M, 3), barycentric weights (M, 3) float64)."""
@@ -53,9 +53,9 @@ def _pool_hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist:
         yield sl, cells.idx, cells.vertex_ids(nx), hit.bary[cells.idx].double()
 
 
-class _Hits(NamedTuple):
+class Hits(NamedTuple):
     """The pool pixels that hit the surface, cached for repeated passes: flat vertex ids (M, 3), barycentric
-    weights (M, 3) float32, colours (M, 3) uint8 and their views (M,) long."""
+    weights (M, 3) float32, colours (M, 3) uint8 and their views (M,) long (one batch of a march)."""
 
     vid: torch.Tensor
     w: torch.Tensor
@@ -63,12 +63,18 @@ class _Hits(NamedTuple):
     view: torch.Tensor
 
 
-def _hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, batch: int) -> list[_Hits]:
-    return [_Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows])
-            for sl, rows, vid, w in _pool_hits(surface, pool, T, max_dist, batch)]
+def batch_hits(pool: PixelPool, sl: slice, rows: torch.Tensor, vid: torch.Tensor, w: torch.Tensor) -> Hits:
+    """One :func:`pool_hits` batch as the bake keeps it."""
+    return Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows])
 
 
-def _mean_colours(hits: list[_Hits], n: int, exposure: torch.Tensor | None, device: torch.device
+def march_pool(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float,
+               batch: int = 262144) -> list[Hits]:
+    """Every pool pixel that hits ``surface`` from poses T, batch by batch (what a bake averages)."""
+    return [batch_hits(pool, sl, rows, vid, w) for sl, rows, vid, w in pool_hits(surface, pool, T, max_dist, batch)]
+
+
+def _mean_colours(hits: list[Hits], n: int, exposure: torch.Tensor | None, device: torch.device
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """(n, 3) float64 weighted-mean colours of the compensated pixels and (n,) their summed weights."""
     acc = torch.zeros(n, 4, dtype=torch.float64, device=device)
@@ -80,7 +86,7 @@ def _mean_colours(hits: list[_Hits], n: int, exposure: torch.Tensor | None, devi
     return acc[:, :3] / support.clamp_min(1e-12)[:, None], support
 
 
-def _fit_exposure(hits: list[_Hits], rgb: torch.Tensor, n_views: int) -> torch.Tensor:
+def _fit_exposure(hits: list[Hits], rgb: torch.Tensor, n_views: int) -> torch.Tensor:
     pred = torch.cat([(h.w.double()[..., None] * rgb[h.vid]).sum(1) for h in hits])
     obs = torch.cat([h.c8.double() / 255.0 for h in hits])
     return exposure_model.fit(torch.cat([h.view for h in hits]), pred, obs, n_views)
@@ -88,15 +94,17 @@ def _fit_exposure(hits: list[_Hits], rgb: torch.Tensor, n_views: int) -> torch.T
 
 @torch.no_grad()
 def bake_exposed(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
-                 batch: int = 262144, sharpen_iters: int = 0, exposure_rounds: int = 0
+                 batch: int = 262144, sharpen_iters: int = 0, exposure_rounds: int = 0,
+                 hits: list[Hits] | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """:func:`bake_colours` with the views' exposures (:mod:`pavemap.mesh.exposure`) fitted alongside:
     ``exposure_rounds`` alternations of baking the compensated colours and fitting each view's gain and
     offset to the texture. Returns rgb, support, coloured as :func:`bake_colours` and the exposure (V, 2)
-    float64 of the pool's views (None with 0 rounds). One march over the pixels, cached."""
+    float64 of the pool's views (None with 0 rounds). One march over the pixels, cached; ``hits``: that
+    march already made (:func:`march_pool` of this surface, pool and T), not repeated."""
     heights = surface.heights
     ny, nx = heights.shape
-    hits = _hits(surface, pool, T, max_dist, batch)
+    hits = march_pool(surface, pool, T, max_dist, batch) if hits is None else hits
     exposure = None
     rgb, support = _mean_colours(hits, ny * nx, exposure, heights.device)
     for _ in range(exposure_rounds if hits else 0):  # no pixel on the surface: nothing to fit
@@ -155,7 +163,7 @@ def pixel_residuals(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_
     where its ray lands, interpolated from the vertex colours ``rgb`` (ny, nx, 3); NaN where the ray misses."""
     flat = rgb.reshape(-1, 3).double()
     out = torch.full((len(pool),), float("nan"), dtype=torch.float32, device=rgb.device)
-    for sl, rows, vid, w in _pool_hits(surface, pool, T, max_dist, batch):
+    for sl, rows, vid, w in pool_hits(surface, pool, T, max_dist, batch):
         pred = (w[..., None] * flat[vid]).sum(1)
         r = torch.linalg.norm(pool.rgb[sl][rows].double() / 255.0 - pred, dim=1)
         out[sl.start + rows] = r.float()
@@ -182,15 +190,16 @@ def static_pixels(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_di
 
 @torch.no_grad()
 def bake_into(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, fill: float, max_dist: float,
-              fill_sigma: float = 1.0, sharpen_iters: int = 0, exposure_rounds: int = 0
-              ) -> tuple[torch.Tensor, torch.Tensor | None]:
+              fill_sigma: float = 1.0, sharpen_iters: int = 0, exposure_rounds: int = 0,
+              hits: list[Hits] | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Replace the model's vertex colours by the baked ones on its current surface (where any pixel reaches
     them, directly or through the gap fill), seen from poses T (V, 4, 4); ``fill`` is the height off the crop.
     Returns (Nv,) bool: the vertices some training pixel sees, and the views' exposure (V, 2) or None
-    (``exposure_rounds``: :func:`bake_exposed`)."""
+    (``exposure_rounds``: :func:`bake_exposed`). ``hits``: the march of ``pool`` from T on the current surface
+    when one was made already (:func:`pavemap.mesh.setup.visible_pixels`)."""
     rgb, support, coloured, exposure = bake_exposed(model.field(model.dense_heights(fill)), pool, T, max_dist,
                                                     fill_sigma, sharpen_iters=sharpen_iters,
-                                                    exposure_rounds=exposure_rounds)
+                                                    exposure_rounds=exposure_rounds, hits=hits)
     flat = model.vertex_flat_ids
     ok = coloured.reshape(-1)[flat]
     model.rgb.data[ok] = rgb.reshape(-1, 3)[flat][ok].to(model.rgb.dtype)

@@ -158,14 +158,25 @@ def view_paths(views: list[tuple[int, object]], traj_xy: np.ndarray, range_m: fl
 
 @torch.no_grad()
 def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist: float, seq_name: str,
-                   warn: Warn, batch: int = 262144) -> PixelPool:
+                   warn: Warn, batch: int = 262144, keep_hits: bool = False) -> tuple[PixelPool, list | None]:
     """The pool without the pixels whose rays cannot meet the initial mesh (sky, far off the crop): they
-    would fill batches with misses. Warns about views that see none of it; an error when no pixel is left."""
+    would fill batches with misses. Warns about views that see none of it; an error when no pixel is left.
+    With ``keep_hits`` also the march itself (:func:`pavemap.mesh.bake.march_pool` of the returned pool on
+    the initial surface from ``pool.T``), for a bake on that surface (11 s of a nuScenes-like drive's
+    149 s 1-epoch stage 1 was the initial bake's repeat of this march); else None."""
+    from pavemap.mesh.bake import batch_hits, pool_hits
+
     hf0 = model.field(model.dense_heights(fill))
     keep = torch.zeros(len(pool), dtype=torch.bool, device=pool.view.device)
-    for s in range(0, len(pool), batch):
-        o, d = view_rays(pool.K, pool.T, pool.view[s:s + batch], pool.uv[s:s + batch])
-        keep[s + find_hits(hf0, o, d, max_dist).idx] = True
+    hits = []
+    if keep_hits:
+        for sl, rows, vid, w in pool_hits(hf0, pool, pool.T, max_dist, batch):
+            keep[sl.start + rows] = True
+            hits.append(batch_hits(pool, sl, rows, vid, w))
+    else:
+        for s in range(0, len(pool), batch):
+            o, d = view_rays(pool.K, pool.T, pool.view[s:s + batch], pool.uv[s:s + batch])
+            keep[s + find_hits(hf0, o, d, max_dist).idx] = True
     seen = torch.bincount(pool.view[keep], minlength=len(pool.keys))
     blind = int((seen == 0).sum())
     if blind:
@@ -178,4 +189,4 @@ def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist:
     pool = pool.subset(keep)
     if len(pool) == 0:
         raise PavemapError(f"sequence {seq_name!r}: no training view sees the road area around the trajectory")
-    return pool
+    return pool, (hits if keep_hits else None)

@@ -92,6 +92,7 @@ class _Run:
     moving_share: float = 0.0  # training pixels left out as moving objects (_drop_moving)
     samples: np.ndarray | None = None  # (N, 3) the height measurements (_samples)
     exposure: torch.Tensor | None = None  # (V, 2) the training views' gain and offset (final bake)
+    init_hits: list | None = None  # the visible-pixel march on the initial surface, for the initial bake
 
     def warn(self, msg: str) -> None:
         self.notes.append(msg)
@@ -126,8 +127,10 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
         fit.poses.set(delta0)
     if cfg.moving_cutoff > 0:
         _drop_moving(fit, run)
+    hits, run.init_hits = run.init_hits, None
     if cfg.bake_init and run.done.epoch == 0:
-        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma)[0]
+        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=hits)
+    del hits
     history, schedule = _train(fit, run, out_dir, progress)
     mesh, metrics = _finish(fit, run, seq, history, schedule)
     if out_dir is not None:
@@ -241,7 +244,10 @@ def _make_fit(run: _Run, cfg: MeshConfig, z_vertices: np.ndarray, seq_name: str,
     group, arm, run.n_groups = rig_groups(data.pool.keys, data.pool.T, cfg.pose_per)
     poses = PoseCorrections(group, arm, run.n_groups, run.device) if cfg.pose_refine else None
     opt, params = make_optimizer(model, poses, cfg)
-    data.pool = visible_pixels(model, data.pool, run.fill, cfg.max_dist, seq_name, warn)
+    # the initial bake sees what this march saw unless poses or the pool change in between
+    reuse = cfg.bake_init and poses is None and cfg.moving_cutoff <= 0
+    data.pool, run.init_hits = visible_pixels(model, data.pool, run.fill, cfg.max_dist, seq_name, warn,
+                                              keep_hits=reuse)
     if data.use_sem and int(data.pool.road.sum()) == 0:
         warn("no pixel of a road class is visible on the mesh area")
     depth_on = data.use_depth and data.pool.depth is not None and cfg.w_depth > 0
@@ -255,6 +261,7 @@ def _resume(fit: Fit, run: _Run, out_dir: Path, warn: Warn) -> None:
         warn("checkpoint in the output folder does not match this run; starting afresh")
         return
     run.done, delta = got
+    run.init_hits = None  # the surface is the checkpoint's now
     if fit.poses is not None and delta is not None:
         fit.poses.set(delta)
 
