@@ -7,6 +7,9 @@
   automatically, registered frames, lateral deviation of the path from a straight line, camera height
   constancy. Targets: 21/21, ≤ 0.5 m, ± 5 cm.
 
+Both also report ``speed_check``: what the importers' speed check (``--fps``; KITTI 10 Hz, the clip's
+keyframes 2 Hz) says of the trajectory found: the largest change of speed per second, against its limit.
+
 Data: ``../shared/data`` (``PAVEMAP_DATA`` overrides). Run it niced: it uses the CPU for minutes.
 """
 
@@ -23,6 +26,7 @@ from PIL import Image
 
 from pavemap.io.egomask import detect_ego_mask, mask_report
 from pavemap.io.sfm import sfm_poses
+from pavemap.io.sfm_checks import SfmChecks, path_acceleration
 from pavemap.types import Camera
 
 DATA = Path(os.environ.get("PAVEMAP_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -39,6 +43,19 @@ def umeyama(X: np.ndarray, Y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray
     R = U @ D @ Vt
     s = float(np.trace(np.diag(S) @ D) / ((Xc**2).sum() / len(X)))
     return s, R, my - s * R @ mx
+
+
+def speed_check(res, hz: float) -> dict:
+    """The speed check ``import folder --fps HZ`` / ``import video`` apply (the SfM here runs without frame
+    times so that a refused clip still gives its figures): the largest change of speed per second over the
+    registered frames at their true times, against the check's limit."""
+    checks = SfmChecks()
+    reg = np.flatnonzero(res.registered)
+    got = path_acceleration(res.T_world_cam[reg, :3, 3], reg / hz, checks.accel_window_s)
+    if got is None:
+        return {"hz": hz, "max_accel_mps2": None, "passes": True, "note": "drive shorter than two windows"}
+    return {"hz": hz, "max_accel_mps2": round(got[0], 2), "at_s": round(got[1], 2),
+            "limit_mps2": checks.max_accel_mps2, "passes": bool(got[0] <= checks.max_accel_mps2)}
 
 
 def per_camera_height(res) -> np.ndarray:
@@ -66,7 +83,8 @@ def kitti() -> dict:
             # the SfM world is metric by the 1.65 m prior; the similarity to the truth says how right that was
             "camera_height_m": round(1.65 * s, 3), "scale_to_truth": round(s, 4),
             "ego_mask": mask_report(mask, "auto").to_dict(), "checks": res.info["checks"],
-            "K_used": res.info["K_refined"], "dense_scale": res.info.get("dense_scale"), "seconds": round(dt, 1)}
+            "K_used": res.info["K_refined"], "dense_scale": res.info.get("dense_scale"),
+            "speed_check": speed_check(res, 10.0), "seconds": round(dt, 1)}
 
 
 def nuscenes() -> dict:
@@ -92,7 +110,8 @@ def nuscenes() -> dict:
             "K_refined": res.info["K_refined"], "intrinsics_refinement": res.info.get("intrinsics_refinement"),
             "checks": res.info["checks"], "interpolated": res.info["interpolated"],
             "steps_m": np.linalg.norm(np.diff(C, axis=0), axis=1).round(2).tolist(),
-            "dense_scale": res.info.get("dense_scale"), "seconds": round(dt, 1)}
+            "dense_scale": res.info.get("dense_scale"), "speed_check": speed_check(res, 2.0),
+            "seconds": round(dt, 1)}
 
 
 def main() -> None:
