@@ -104,5 +104,6 @@ def test_fps_must_be_positive(tmp_path):
     from PIL import Image
 
     Image.new("RGB", (32, 24)).save(tmp_path / "img" / "000000.png")
-    with pytest.raises(PavemapError, match="--fps must be a positive"):
-        import_folder(tmp_path / "img", tmp_path / "cameras.json", "sfm", tmp_path / "seq", fps=0)
+    for bad in (0, -2.0, float("inf"), float("nan")):  # inf would put every frame at t = 0
+        with pytest.raises(PavemapError, match="--fps must be a positive"):
+            import_folder(tmp_path / "img", tmp_path / "cameras.json", "sfm", tmp_path / "seq", fps=bad)

@@ -242,8 +242,8 @@ def import_folder(
     images_dir, out = Path(images_dir), Path(out)
     cameras = read_cameras_json(cameras_json)
     per_cam = _camera_images(images_dir, cameras)
-    if fps is not None and not fps > 0:
-        raise PavemapError(f"--fps must be a positive number of frames per second, got {fps}")
+    if fps is not None and not 0 < fps < float("inf"):
+        raise PavemapError(f"--fps must be a positive, finite number of frames per second, got {fps}")
 
     if str(poses).lower() == "sfm":
         if len(cameras) != 1:

@@ -10,11 +10,10 @@ import numpy as np
 import torch
 
 from pavemap.errors import PavemapError
-from pavemap.geometry import find_hits
+from pavemap.mesh.bake import batch_hits, pool_hits
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
 from pavemap.mesh.model import MeshGrid, RoadMeshModel, build_grid
-from pavemap.mesh.render import view_rays
 from pavemap.types import SemanticClass, Sequence, View
 
 Warn = Callable[[str], None]
@@ -164,19 +163,13 @@ def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist:
     With ``keep_hits`` also the march itself (:func:`pavemap.mesh.bake.march_pool` of the returned pool on
     the initial surface from ``pool.T``), for a bake on that surface (11 s of a nuScenes-like drive's
     149 s 1-epoch stage 1 was the initial bake's repeat of this march); else None."""
-    from pavemap.mesh.bake import batch_hits, pool_hits
-
     hf0 = model.field(model.dense_heights(fill))
     keep = torch.zeros(len(pool), dtype=torch.bool, device=pool.view.device)
-    hits = []
-    if keep_hits:
-        for sl, rows, vid, w in pool_hits(hf0, pool, pool.T, max_dist, batch):
-            keep[sl.start + rows] = True
+    hits = [] if keep_hits else None
+    for sl, rows, vid, w in pool_hits(hf0, pool, pool.T, max_dist, batch):
+        keep[sl.start + rows] = True
+        if hits is not None:
             hits.append(batch_hits(pool, sl, rows, vid, w))
-    else:
-        for s in range(0, len(pool), batch):
-            o, d = view_rays(pool.K, pool.T, pool.view[s:s + batch], pool.uv[s:s + batch])
-            keep[s + find_hits(hf0, o, d, max_dist).idx] = True
     seen = torch.bincount(pool.view[keep], minlength=len(pool.keys))
     blind = int((seen == 0).sum())
     if blind:
@@ -189,4 +182,4 @@ def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist:
     pool = pool.subset(keep)
     if len(pool) == 0:
         raise PavemapError(f"sequence {seq_name!r}: no training view sees the road area around the trajectory")
-    return pool, (hits if keep_hits else None)
+    return pool, hits

@@ -127,10 +127,9 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
         fit.poses.set(delta0)
     if cfg.moving_cutoff > 0:
         _drop_moving(fit, run)
-    hits, run.init_hits = run.init_hits, None
     if cfg.bake_init and run.done.epoch == 0:
-        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=hits)
-    del hits
+        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits)
+    run.init_hits = None  # freed before training
     history, schedule = _train(fit, run, out_dir, progress)
     mesh, metrics = _finish(fit, run, seq, history, schedule)
     if out_dir is not None:
