@@ -276,3 +276,23 @@ def test_unmeasured_ground_takes_the_cross_section_from_along_the_road():
     err = np.abs(filled - truth)
     away = hidden & (np.abs(xy[:, 1] + 3.0) > 0.25)  # the step itself is smoothed over +-0.1 m across
     assert err[away].max() < 0.01 and err[hidden].mean() < 0.01, (err[away].max(), err[hidden].mean())
+
+
+def test_a_non_finite_sparse_gradient_skips_the_step():
+    """The per-vertex colours' gradients are sparse and checked uncoalesced: a NaN among them still stops the step."""
+    from types import SimpleNamespace
+
+    from pavemap.mesh.config import MeshConfig
+    from pavemap.mesh.step import MultiOptimizer, NonFiniteStepError, _update
+
+    emb = torch.nn.Parameter(torch.ones(5, 3))
+    fit = SimpleNamespace(cfg=MeshConfig(), opt=MultiOptimizer(torch.optim.SparseAdam([emb], lr=0.1)), params=[emb])
+    idx = torch.tensor([[0, 1, 1], [2, 2, 3]])  # row 1 and row 2 twice: an uncoalesced gradient
+    loss = (torch.nn.functional.embedding(idx, emb, sparse=True) - 1).abs().sqrt().sum()  # 0, d/dx: 0 * inf
+    assert float(loss) == 0.0
+    with pytest.raises(NonFiniteStepError, match="gradients"):
+        _update(fit, loss, 0.5)
+    assert torch.equal(emb.detach(), torch.ones(5, 3)) and emb.grad is None
+    ok = (torch.nn.functional.embedding(idx, emb, sparse=True) ** 2).sum()
+    _update(fit, ok, 0.5)
+    assert not torch.equal(emb.detach(), torch.ones(5, 3)) and torch.equal(emb.detach()[4], torch.ones(3))

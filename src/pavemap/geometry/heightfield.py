@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional as F  # noqa: N812
 
+from pavemap.geometry import march_cpu
 from pavemap.geometry.grid import GridSpec
 
 
@@ -373,22 +374,22 @@ def find_hits(
 ) -> HitCells:
     """The no-autograd half of :func:`intersect_rays`: which rays hit, where, on which triangle.
 
-    Split out so a caller can find the triangles on cached heights, then evaluate fresh heights only
-    at the vertices it needs and call :func:`hits_to_rayhit` (what stage-1 training does).
-    ``bounds`` from :func:`surface_bounds` (same heights, dtype of ``origins``) saves O(grid) work per call.
+    Split out so a caller can find the triangles on cached heights, then evaluate fresh heights only at the
+    vertices it needs and call :func:`hits_to_rayhit` (stage-1 training). ``bounds`` from :func:`surface_bounds`
+    (same heights, dtype of ``origins``) saves O(grid) work per call. On a CPU the march runs compiled.
     """
-    n = origins.shape[0]
-    dev = origins.device
+    n, dev = origins.shape[0], origins.device
     if n == 0 or not bool(hf.valid.any()) or hf.nx < 2 or hf.ny < 2:
         e = torch.zeros(0, dtype=torch.long, device=dev)
         return HitCells(e, origins.new_zeros(0).detach(), e, e.clone(), torch.zeros(0, dtype=torch.bool, device=dev))
     o_d, d_d = origins.detach(), dirs.detach()
     if bounds is None or bounds.H.dtype != o_d.dtype:
         bounds = surface_bounds(hf, o_d.dtype)
+    roots = march_cpu.find_roots_cpu if march_cpu.use_for(o_d) else _find_roots  # same march, compiled
     parts = []
     for s in range(0, n, max_rays_per_batch):
         e = min(n, s + max_rays_per_batch)
-        idx, lam0, i, j, lower = _find_roots(hf, o_d[s:e], d_d[s:e], max_dist, step, chunk, refine_iters, bounds)
+        idx, lam0, i, j, lower = roots(hf, o_d[s:e], d_d[s:e], max_dist, step, chunk, refine_iters, bounds)
         parts.append((idx + s, lam0, i, j, lower))
     return HitCells(*(torch.cat([p[k] for p in parts]) for k in range(5)))
 
