@@ -53,7 +53,7 @@ def march_alone(seq_dir: Path, views: int, repeats: int) -> dict:
         w, h = int(cam.width * 0.25), int(cam.height * 0.25)
         K = torch.as_tensor(cam.K, dtype=torch.float64).clone()
         K[:2] *= 0.25
-        o, d = pixel_rays(K, torch.as_tensor(v.T_world_cam, dtype=torch.float64), pixel_grid(w, h, torch.float64))
+        o, d = pixel_rays(K, torch.as_tensor(v.T_world_cam, dtype=torch.float64), pixel_grid(w, h, dtype=torch.float64))
         os_.append(o.float())
         ds.append(d.float())
     o, d = torch.cat(os_), torch.cat(ds)
