@@ -2,8 +2,8 @@
 
 The torch march in ``heightfield.py`` is the reference (and the CUDA path). On a CPU it spends its time in
 Python and in many small tensor ops over shrinking sets of rays: measured on a 60-frame kitti-like drive it was
-97 of stage 1's 175 s. This module runs the same algorithm one ray at a time, compiled by numba and spread
-over the rays (``prange``): the same bracket (the ray between the surface's lowest and highest point, inside
+97 of stage 1's 175 s. This module runs the same algorithm one ray at a time, compiled by numba (one thread:
+measured, a second one added ~5 %): the same bracket (the ray between the surface's lowest and highest point, inside
 the grid's box), the same half-cell samples in chunks with the same empty-space skipping over the dilated
 tile maxima, the same first "above, then below" pair, and the same Newton-or-bisection refinement with the
 same convergence test. It computes in float64 (the reference computes in the rays' dtype), so a root can differ
@@ -16,14 +16,11 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import threading
 
 import numpy as np
 import torch
 
-_LOCK = threading.Lock()  # numba's default threading layer does not take concurrent launches
 _MARCH = None  # the compiled kernel, built on first use (importing numba costs ~0.25 s)
-prange = range  # numba's prange once compiled (see _compiled)
 
 
 def available() -> bool:
@@ -43,10 +40,8 @@ def _compiled():
     if _MARCH is None:
         import numba
 
-        g = globals()
-        g["prange"] = numba.prange
-        g["_g_at"] = numba.njit(cache=True, inline="always")(_g_at_py)
-        _MARCH = numba.njit(cache=True, parallel=True)(_march_py)
+        globals()["_g_at"] = numba.njit(cache=True, inline="always")(_g_at_py)
+        _MARCH = numba.njit(cache=True)(_march_py)
     return _MARCH
 
 
@@ -75,12 +70,13 @@ _g_at = _g_at_py  # the compiled one once built (see _compiled)
 
 def _march_py(o, d, H, V, tmax, tile, x0, y0, res, nx, ny, hmin, hmax, max_dist, step, chunk, refine_iters,
            found, lam_out, ci, cj, clower):
-    """Fill found (N,), lam_out (N,), ci, cj (N,) and clower (N,) for the rays o, d (N, 3) float64."""
+    """Fill found (N,), lam_out (N,), ci, cj (N,) and clower (N,) for the rays o, d (N, 3) float64 over the flat
+    heights H (ny*nx,) (float32 or float64, read as float64) and crop V (ny*nx,) bool."""
     tny, tnx = tmax.shape
     reach = float(tile - 1)
     x_min, x_max = x0, x0 + (nx - 1) * res
     y_min, y_max = y0, y0 + (ny - 1) * res
-    for r in prange(o.shape[0]):
+    for r in range(o.shape[0]):
         ox, oy, oz = o[r, 0], o[r, 1], o[r, 2]
         dx, dy, dz = d[r, 0], d[r, 1], d[r, 2]
         lo, hi = 0.0, max_dist
@@ -174,18 +170,12 @@ def find_roots_cpu(hf, o: torch.Tensor, d: torch.Tensor, max_dist: float, step: 
     ci = np.zeros(n, dtype=np.int64)
     cj = np.zeros(n, dtype=np.int64)
     clower = np.zeros(n, dtype=np.bool_)
-    H = bounds.H.detach().double().numpy()
-    V = bounds.V.numpy().astype(np.bool_, copy=False)
-    tmax = bounds.tmax.detach().double().numpy()
     march = _compiled()
-    import numba
-
-    with _LOCK:
-        numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-        march(np.ascontiguousarray(o.detach().double().numpy()), np.ascontiguousarray(d.detach().double().numpy()),
-               H, V, np.ascontiguousarray(tmax), int(bounds.tile), float(hf.x0), float(hf.y0), float(hf.res),
-               int(hf.nx), int(hf.ny), float(bounds.hmin), float(bounds.hmax), float(max_dist), float(step),
-               int(chunk), int(refine_iters), found, lam, ci, cj, clower)
+    march(np.ascontiguousarray(o.detach().double().numpy()), np.ascontiguousarray(d.detach().double().numpy()),
+          bounds.H.detach().contiguous().numpy(), bounds.V.contiguous().numpy(),
+          bounds.tmax.detach().contiguous().numpy(), int(bounds.tile), float(hf.x0), float(hf.y0), float(hf.res),
+          int(hf.nx), int(hf.ny), float(bounds.hmin), float(bounds.hmax), float(max_dist), float(step),
+          int(chunk), int(refine_iters), found, lam, ci, cj, clower)
     idx = torch.from_numpy(np.flatnonzero(found))
     return (idx, torch.from_numpy(lam[found]).to(o.dtype), torch.from_numpy(ci[found]),
             torch.from_numpy(cj[found]), torch.from_numpy(clower[found]))
