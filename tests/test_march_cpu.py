@@ -92,3 +92,14 @@ def test_find_hits_uses_the_kernel_on_a_cpu_unless_told_not_to(monkeypatch):
     assert torch.allclose(hit.points[0], o[0] + ref.lam0[0] * d[0], atol=1e-9)
     z, _ = hf.height_at(hit.points[:1, :2])
     assert float(z[0]) == pytest.approx(float(hit.points[0, 2]), abs=1e-9)
+
+
+def test_without_numba_the_torch_march_runs(monkeypatch):
+    """A missing or broken numba (available() False) is not an error: find_hits marches with torch."""
+    hf = curb_field(4)
+    o = torch.tensor([[0.5, 0.5, 1.6]], dtype=torch.float64)
+    d = torch.nn.functional.normalize(torch.tensor([[0.6, 0.5, -0.4]], dtype=torch.float64), dim=1)
+    monkeypatch.setattr(march_cpu, "available", lambda: False)
+    monkeypatch.setattr(march_cpu, "find_roots_cpu", lambda *a: pytest.fail("the compiled march ran"))
+    assert not march_cpu.use_for(o)
+    assert find_hits(hf, o, d).idx.tolist() == [0]

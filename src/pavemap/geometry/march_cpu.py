@@ -16,7 +16,7 @@ numba is a dependency of the package; where it is missing anyway, :func:`availab
 
 from __future__ import annotations
 
-import importlib.util
+import functools
 import os
 
 import numpy as np
@@ -25,9 +25,15 @@ import torch
 _MARCH = None  # the compiled kernel, built on first use (importing numba costs ~0.25 s)
 
 
+@functools.cache
 def available() -> bool:
-    """Whether the compiled march can run here (numba installed)."""
-    return importlib.util.find_spec("numba") is not None
+    """Whether the compiled march can run here: numba imports (asked once per process; find_hits asks per call, and
+    a broken numba install falls back to the torch march instead of failing in the middle of a run)."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def use_for(rays: torch.Tensor) -> bool:
@@ -42,32 +48,37 @@ def _compiled():
     if _MARCH is None:
         import numba
 
-        globals()["_g_at"] = numba.njit(cache=True, inline="always")(_g_at_py)
+        g = globals()
+        g["_triangle"] = numba.njit(cache=True, inline="always")(_triangle_py)
+        g["_g_at"] = numba.njit(cache=True, inline="always")(_g_at_py)
         _MARCH = numba.njit(cache=True)(_march_py)
     return _MARCH
 
 
-def _g_at_py(u0, v0, du, dv, oz, dz, lam, H, V, nx, ny):
-    """(g, ok) of one ray at ``lam``: ray height minus surface height, and whether the triangle exists."""
-    uu = u0 + lam * du
-    vv = v0 + lam * dv
+def _triangle_py(uu, vv, nx, ny):
+    """The triangle under grid coordinates (uu, vv), clamped into the grid as ``heightfield._triangle`` does:
+    cell (i, j), lower, its vertex ids (v00, i1, i2), the barycentric weights (w0, w1, w2) and whether (uu, vv)
+    lies inside the grid."""
     inside = (uu >= 0.0) and (uu <= nx - 1) and (vv >= 0.0) and (vv <= ny - 1)
     i = min(max(int(np.floor(uu)), 0), max(nx - 2, 0))
     j = min(max(int(np.floor(vv)), 0), max(ny - 2, 0))
-    fx = uu - i
-    fy = vv - j
+    fx, fy = uu - i, vv - j
     v00 = j * nx + i
-    if fx >= fy:
-        i1, i2 = v00 + 1, v00 + nx + 1
-        w0, w1, w2 = 1.0 - fx, fx - fy, fy
-    else:
-        i1, i2 = v00 + nx + 1, v00 + nx
-        w0, w1, w2 = 1.0 - fy, fx, fy - fx
-    ok = inside and V[v00] and V[i1] and V[i2]
-    g = oz + lam * dz - (w0 * H[v00] + w1 * H[i1] + w2 * H[i2])
-    return g, ok
+    lower = fx >= fy
+    if lower:
+        return i, j, lower, v00, v00 + 1, v00 + nx + 1, 1.0 - fx, fx - fy, fy, inside
+    return i, j, lower, v00, v00 + nx + 1, v00 + nx, 1.0 - fy, fx, fy - fx, inside
 
-_g_at = _g_at_py  # the compiled one once built (see _compiled)
+
+def _g_at_py(u0, v0, du, dv, oz, dz, lam, H, V, nx, ny):
+    """(g, ok) of one ray at ``lam``: ray height minus surface height, and whether the triangle exists."""
+    _, _, _, v00, i1, i2, w0, w1, w2, inside = _triangle(u0 + lam * du, v0 + lam * dv, nx, ny)
+    ok = inside and V[v00] and V[i1] and V[i2]
+    return oz + lam * dz - (w0 * H[v00] + w1 * H[i1] + w2 * H[i2]), ok
+
+
+_triangle = _triangle_py  # the compiled ones once built (see _compiled)
+_g_at = _g_at_py
 
 
 def _march_py(o, d, H, V, tmax, tile, x0, y0, res, nx, ny, hmin, hmax, max_dist, step, chunk, refine_iters,
@@ -125,23 +136,12 @@ def _march_py(o, d, H, V, tmax, tile, x0, y0, res, nx, ny, hmin, hmax, max_dist,
             cur = cur + chunk * dl
         if not hit:
             continue
-        for _ in range(refine_iters):
-            ub, vb = u0 + b * du, v0 + b * dv
-            i = min(max(int(np.floor(ub)), 0), max(nx - 2, 0))
-            j = min(max(int(np.floor(vb)), 0), max(ny - 2, 0))
-            fx, fy = ub - i, vb - j
-            lower = fx >= fy
-            v00 = j * nx + i
-            if lower:
-                i1, i2 = v00 + 1, v00 + nx + 1
-                h0, h1, h2 = H[v00], H[i1], H[i2]
-                gb = oz + b * dz - ((1.0 - fx) * h0 + (fx - fy) * h1 + fy * h2)
-                slope = dz - (-du * h0 + (du - dv) * h1 + dv * h2)
-            else:
-                i1, i2 = v00 + nx + 1, v00 + nx
-                h0, h1, h2 = H[v00], H[i1], H[i2]
-                gb = oz + b * dz - ((1.0 - fy) * h0 + fx * h1 + (fy - fx) * h2)
-                slope = dz - (-dv * h0 + du * h1 + (dv - du) * h2)
+        for _it in range(refine_iters):
+            i, j, lower, v00, i1, i2, w0, w1, w2, _inside = _triangle(u0 + b * du, v0 + b * dv, nx, ny)
+            h0, h1, h2 = H[v00], H[i1], H[i2]
+            gb = oz + b * dz - (w0 * h0 + w1 * h1 + w2 * h2)
+            # d(weights)/d(lam) of the triangle type, as heightfield._weight_slope
+            slope = dz - ((-du * h0 + (du - dv) * h1 + dv * h2) if lower else (-dv * h0 + du * h1 + (dv - du) * h2))
             safe = slope if abs(slope) > 1e-12 else -1e-12
             lp = b - gb / safe
             tol = 1e-7 * (abs(b - a) + 1e-9) + 1e-12
