@@ -17,6 +17,7 @@ measured, not assumed: a box is off-road when at most half of its pixels are roa
 from __future__ import annotations
 
 import json
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,17 +80,52 @@ class SimDetectorConfig:
             raise PavemapError("offroad_share + onroad_fp_share + paint_share must stay below 0.95")
 
 
+# pixel codes of a view's compact map: bit 0 road, bit 1 shadow, bits 2-3 the off-road source class
+_ROAD, _SHADOW = 1, 2
+_SOURCES = {"vehicle": 1, "building": 2, "vegetation": 3}
+_SOURCE_CLASS = {"vehicle": "vehicle", "building": "building", "vegetation": "terrain"}
+_EXPANDED_KEEP = 8  # views whose pools stay expanded at once (false positives revisit views at random)
+
+
 @dataclass
 class _View:
+    """One view's detection-relevant content, kept compact: a whole drive's views stay in memory while
+    false positives are drawn, so the pixel pools are rebuilt from a compressed (H, W) uint8 code map on
+    demand (a few views at a time) instead of held as int64 index arrays (~1.7 MB a view)."""
+
     frame: int
     camera: str
     W: int
     H: int
-    road: np.ndarray  # (H, W) bool
-    road_ii: np.ndarray  # (H+1, W+1) integral image of road
-    pools: dict[str, np.ndarray]  # source -> (n,) flat pixel indices
+    code: bytes  # zlib of the (H, W) uint8 pixel codes
+    sizes: dict[str, int]  # source -> number of pixels in its pool
     streaks: list[tuple[float, float, float, float]]
     paint: list[tuple[float, float, float, float]] = field(default_factory=list)  # boxes of paint pieces
+    _expanded: tuple[dict[str, np.ndarray], np.ndarray] | None = field(default=None, repr=False)
+
+    def expand(self, keep: list[_View]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """``(pools, road_ii)``: source -> (n,) int64 flat pixel indices, and the (H+1, W+1) integral image
+        of road; ``keep`` is the caller's list of expanded views, the oldest dropped past a few."""
+        if self._expanded is None:
+            c = np.frombuffer(zlib.decompress(self.code), np.uint8).reshape(self.H, self.W)
+            self._expanded = _pools(c)
+            keep.append(self)
+            while len(keep) > _EXPANDED_KEEP:
+                keep.pop(0)._expanded = None
+        return self._expanded
+
+
+def _pools(code: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    road = (code & _ROAD) > 0
+    shadow = (code & _SHADOW) > 0
+    src = (code >> 2).reshape(-1)
+    pools = {name: np.flatnonzero(src == k) for name, k in _SOURCES.items()}
+    pools["shadow"] = np.flatnonzero((shadow & ~road).reshape(-1))
+    pools["road_shadow"] = np.flatnonzero((shadow & road).reshape(-1))
+    pools["road"] = np.flatnonzero(road.reshape(-1))
+    ii = np.zeros((code.shape[0] + 1, code.shape[1] + 1), np.int64)
+    ii[1:, 1:] = road.cumsum(0).cumsum(1)
+    return pools, ii
 
 
 def _boxes_of_ids(ids: np.ndarray, W: int):
@@ -130,27 +166,22 @@ def _load_view(seq: Sequence, frame, cam: str, names: dict[str, int], road_lut: 
     sem = load_semantics(root / v.semantics)
     H, W = sem.shape
     road = road_lut[sem]
-    ii = np.zeros((H + 1, W + 1), np.int64)
-    ii[1:, 1:] = road.cumsum(0).cumsum(1)
     low = code & (SHADOW_BIT - 1)
-    shadow = (code & SHADOW_BIT) > 0
-    flat_sem = sem.reshape(-1)
-    pools = {}
+    px = road.astype(np.uint8) * _ROAD | ((code & SHADOW_BIT) > 0).astype(np.uint8) * _SHADOW
     for src, cname in (("vehicle", "vehicle"), ("building", "building"), ("vegetation", "terrain")):
         if cname in names:
-            pools[src] = np.flatnonzero(flat_sem == names[cname])
-    pools["shadow"] = np.flatnonzero(shadow.reshape(-1) & ~road.reshape(-1))
-    pools["road_shadow"] = np.flatnonzero(shadow.reshape(-1) & road.reshape(-1))
-    pools["road"] = np.flatnonzero(road.reshape(-1))
+            px |= (sem == names[cname]).astype(np.uint8) * np.uint8(_SOURCES[src] << 2)
+    pools, ii = _pools(px)
+    sizes = {k: int(a.size) for k, a in pools.items() if k not in _SOURCES or _SOURCE_CLASS[k] in names}
     decoy = np.where(low >= DECOY_ID_OFFSET, low, 0).reshape(-1)
     _, cnt, x1, y1, x2, y2 = _boxes_of_ids(decoy, W)
     streaks = [(float(a), float(b), float(c), float(d)) for n, a, b, c, d in zip(cnt, x1, y1, x2, y2, strict=True)
                if n >= cfg.min_pixels]
     defects = np.where((low > 0) & (low < DECOY_ID_OFFSET), low, 0).reshape(-1)
-    view = _View(frame.index, cam, W, H, road, ii, pools, streaks,
+    view = _View(frame.index, cam, W, H, zlib.compress(px.tobytes(), 1), sizes, streaks,
                  _paint_pieces(sem == names["lane_marking"], cfg) if cfg.paint_share > 0 and "lane_marking" in names
                  else [])
-    return view, _boxes_of_ids(defects, W)
+    return view, ii, _boxes_of_ids(defects, W)
 
 
 def _conf(rng: np.random.Generator, ab: tuple[float, float], lo: float) -> float:
@@ -195,7 +226,7 @@ def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
     bar = tqdm(total=n_views, desc="sim detect", unit="view", disable=n_views < 50)
     for f in seq.frames:
         for cam in f.views:
-            view, (ids, cnt, x1, y1, x2, y2) = _load_view(seq, f, cam, names, road_lut, cfg)
+            view, road_ii, (ids, cnt, x1, y1, x2, y2) = _load_view(seq, f, cam, names, road_lut, cfg)
             views.append(view)
             for k in range(ids.size):
                 if cnt[k] < cfg.min_pixels or rng.random() < cfg.miss_rate:
@@ -208,7 +239,7 @@ def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
                 if rng.random() < cfg.confusion:
                     cls = int(rng.choice(4, p=CONFUSION[true_cls]))
                 box = _jitter(rng, (x1[k], y1[k], x2[k], y2[k]), cfg.box_jitter, view.W, view.H)
-                rf = _road_fraction(view.road_ii, box)
+                rf = _road_fraction(road_ii, box)
                 det = Detection(f.index, cam, box, cls, _conf(rng, cfg.conf_true, cfg.conf_min))
                 dets.append(((f.index, cam_order[cam]), det, {
                     "true": True, "defect_id": int(ids[k]) - 1, "offroad": rf <= 0.5, "source": "defect",
@@ -220,11 +251,11 @@ def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
     total = n_tp / max(1e-9, 1.0 - cfg.offroad_share - cfg.onroad_fp_share - cfg.paint_share)
     n_off = int(round(cfg.offroad_share * total))
     n_on = int(round(cfg.onroad_fp_share * total))
-    weight = np.array([sum(len(v.pools.get(s, ())) for s in ("vehicle", "building", "vegetation", "shadow"))
+    weight = np.array([sum(v.sizes.get(s, 0) for s in ("vehicle", "building", "vegetation", "shadow"))
                        + 400 * len(v.streaks) for v in views], float)
     if n_off and weight.sum() > 0:
         dets += _false_positives(rng, cfg, views, weight / weight.sum(), n_off, offroad=True, cam_order=cam_order)
-    road_w = np.array([len(v.pools["road"]) for v in views], float)
+    road_w = np.array([v.sizes["road"] for v in views], float)
     if n_on and road_w.sum() > 0:
         dets += _false_positives(rng, cfg, views, road_w / road_w.sum(), n_on, offroad=False, cam_order=cam_order)
 
@@ -243,31 +274,33 @@ def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
 
 def _false_positives(rng, cfg: SimDetectorConfig, views: list[_View], p_view: np.ndarray, n: int, offroad: bool,
                      cam_order: dict[str, int]):
-    out = []
+    out: list = []
+    expanded: list[_View] = []
     attempts = 0
     while len(out) < n and attempts < 20 * n + 50:
         attempts += 1
         v = views[int(rng.choice(len(views), p=p_view))]
         if offroad:
             srcs = [s for s, w in cfg.source_weights.items() if w > 0 and (
-                len(v.streaks) if s == "streak" else len(v.pools.get(s, ())))]
+                len(v.streaks) if s == "streak" else v.sizes.get(s, 0))]
             if not srcs:
                 continue
             w = np.array([cfg.source_weights[s] for s in srcs])
             src = srcs[int(rng.choice(len(srcs), p=w / w.sum()))]
         else:
-            src = "shadow" if len(v.pools["road_shadow"]) and rng.random() < 0.6 else "stain"
+            src = "shadow" if v.sizes["road_shadow"] and rng.random() < 0.6 else "stain"
         if src == "streak":
             box = _jitter(rng, v.streaks[int(rng.integers(len(v.streaks)))], cfg.box_jitter, v.W, v.H)
         else:
-            pool = v.pools["road_shadow" if src == "shadow" and not offroad else ("road" if src == "stain" else src)]
+            pool = v.expand(expanded)[0]["road_shadow" if src == "shadow" and not offroad else
+                                        ("road" if src == "stain" else src)]
             pix = int(pool[int(rng.integers(len(pool)))])
             cy, cx = divmod(pix, v.W)
             bw = max(6.0, rng.uniform(*cfg.fp_box_frac) * v.W)
             bh = max(6.0, bw * rng.uniform(0.4, 1.2))
             box = (max(0.0, cx - bw / 2), max(0.0, cy - bh / 2), min(float(v.W), cx + bw / 2),
                    min(float(v.H), cy + bh / 2))
-        rf = _road_fraction(v.road_ii, box)
+        rf = _road_fraction(v.expand(expanded)[1], box)
         if (rf <= 0.5) != offroad:
             continue  # box does not land where this kind of false positive belongs: draw again
         cls = int(rng.choice(4, p=np.asarray(FP_CLASS[src if src in FP_CLASS else "stain"])))
@@ -303,6 +336,7 @@ def _paint_pieces(paint: np.ndarray, cfg: SimDetectorConfig) -> list[tuple[float
 def _paint_positives(rng, cfg: SimDetectorConfig, views: list[_View], p_view: np.ndarray, n: int,
                      cam_order: dict[str, int]):
     out = []
+    expanded: list[_View] = []
     for _ in range(n):
         v = views[int(rng.choice(len(views), p=p_view))]
         box = _jitter(rng, v.paint[int(rng.integers(len(v.paint)))], cfg.box_jitter, v.W, v.H)
@@ -311,7 +345,7 @@ def _paint_positives(rng, cfg: SimDetectorConfig, views: list[_View], p_view: np
         det = Detection(v.frame, v.camera, box, cls, _conf(rng, cfg.conf_true, cfg.conf_min))
         out.append(((v.frame, cam_order[v.camera]), det, {
             "true": False, "defect_id": None, "offroad": False, "source": "paint", "cls_true": None,
-            "road_fraction": round(_road_fraction(v.road_ii, box), 3)}))
+            "road_fraction": round(_road_fraction(v.expand(expanded)[1], box), 3)}))
     return out
 
 
