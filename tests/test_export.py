@@ -346,3 +346,47 @@ def test_write_outputs_with_sequence_and_output_settings(tmp_path):
     paths = write_outputs(tmp_path / "bare", seq=seq, output={"figures": False, "report": False}, progress=False,
                           **kw)
     assert "report.html" not in paths and not list((tmp_path / "bare" / "figures").iterdir())
+
+
+@pytest.mark.parametrize("georef", [False, True])
+def test_geotiff_strips_join_without_seams(tmp_path, monkeypatch, georef):
+    """The map is written a strip of rows at a time (a long drive's map never sits in memory twice): strips of
+    16 rows give the raster one strip over the whole map gives, NaN and nodata handling included."""
+    import pavemap.export.geotiff as gt
+
+    rng = np.random.default_rng(4)
+    H, W = 70, 45
+    prob = rng.uniform(0, 1, (H, W)).astype(np.float32)
+    prob[5, 7] = np.nan
+    cls = rng.uniform(0, 1, (4, H, W)).astype(np.float32)
+    valid = rng.uniform(0, 1, (H, W)) > 0.1
+    grid = GridSpec(2.0, -3.0, 0.2, nx=W, ny=H)
+    origin = GeoOrigin(ORIGIN.lat, ORIGIN.lon, heading_deg=30.0) if georef else None
+    got = {}
+    for rows in (16, 10_000):
+        monkeypatch.setattr(gt, "ROWS", rows)
+        p = write_geotiff(tmp_path / f"m{rows}.tif", prob, cls, grid, origin, valid=valid)
+        with rasterio.open(p) as ds:
+            got[rows] = ds.read()
+            assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT", "COG") == "COG"
+    assert np.array_equal(got[16], got[10_000])
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["m10000.tif", "m16.tif"]  # no strip file left behind
+    if not georef:  # the local raster is the map itself, north-up, nodata outside the surveyed cells
+        want = np.where(valid, np.nan_to_num(np.concatenate([prob[None], cls])), gt.NODATA)[:, ::-1]
+        assert np.array_equal(got[16], want.astype(np.float32))
+
+
+def test_report_heat_layer_is_thinned_before_colouring():
+    """The report's probability layer is strided to the page's image size before it is coloured (float RGBA of a
+    long drive's whole map would be 32 bytes a cell), and equals colouring the whole map then striding."""
+    from matplotlib import colormaps
+
+    from pavemap.export.report import MAX_IMAGE_SIDE, _prob_rgba
+
+    rng = np.random.default_rng(1)
+    prob = rng.uniform(0, 1, (MAX_IMAGE_SIDE + 501, 300)).astype(np.float32)
+    got = _prob_rgba(prob)
+    assert max(got.shape[:2]) <= MAX_IMAGE_SIDE and got.shape[2] == 4
+    full = colormaps["inferno"](0.25 + 0.75 * prob)
+    full[..., 3] = np.where(prob < 0.02, 0.0, np.clip(0.25 + prob, 0.0, 0.9))
+    assert np.array_equal(got, (full[::-1][::2, ::2] * 255).astype(np.uint8))

@@ -172,7 +172,7 @@ def test_ema_matches_sequential_update() -> None:
     pairs = sorted({(int(d), int(v)) for d, v in zip(rng.integers(0, N, 200), rng.integers(0, V, 200), strict=True)})
     det = torch.tensor([p[0] for p in pairs])
     vid = torch.tensor([p[1] for p in pairs])
-    acc = accumulate(V, det, vid, torch.tensor(rank), torch.tensor(cls), torch.tensor(conf), alpha, w)
+    acc = accumulate(det, vid, torch.tensor(rank), torch.tensor(cls), torch.tensor(conf), alpha, w)
     sev = np.zeros(V)
     cnt = np.zeros((V, 4), dtype=np.int64)
     cmax = np.zeros(V)
@@ -182,9 +182,11 @@ def test_ema_matches_sequential_update() -> None:
                 sev[v] = alpha * w[cls[k]] + (1 - alpha) * sev[v]
                 cnt[v, cls[k]] += 1
                 cmax[v] = max(cmax[v], conf[k])
-    assert np.allclose(acc.sev.numpy(), sev)
-    assert (acc.counts.numpy() == cnt).all()
-    assert np.allclose(acc.conf.numpy(), cmax)
+    seen = acc.seen.numpy()  # the state lives on the observed vertices only
+    assert (seen == np.unique(vid.numpy())).all()
+    assert np.allclose(acc.sev.numpy(), sev[seen]) and not sev[np.setdiff1d(np.arange(V), seen)].any()
+    assert (acc.counts.numpy() == cnt[seen]).all()
+    assert np.allclose(acc.conf.numpy(), cmax[seen])
 
 
 def test_probability_forms() -> None:

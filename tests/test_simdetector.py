@@ -120,3 +120,36 @@ def test_contact_sheet(tiny_nuscenes_seq, tmp_path):
         assert im.width >= 6 * 200 and im.height > 200
         a = np.asarray(im.convert("RGB"))
     assert a.std() > 20  # not a blank canvas
+
+
+def test_views_are_kept_compact_and_expand_to_their_pixel_pools(busy_seq):
+    """A drive's views stay in memory while false positives are drawn: each keeps a compressed pixel-code map
+    (not int64 index arrays), and expanding it gives exactly the pools read from the view's own files."""
+    from pavemap.synth import simdetector as sd
+
+    names = {c.name: c.id for c in busy_seq.classes}
+    road_lut = busy_seq.class_lut("road")
+    f = busy_seq.frames[3]
+    cam = next(iter(f.views))
+    view, road_ii, _ = sd._load_view(busy_seq, f, cam, names, road_lut, sd.SimDetectorConfig())
+    assert len(view.code) < view.W * view.H // 4  # compressed: a fraction of one byte a pixel
+    kept: list = []
+    pools, ii = view.expand(kept)
+    assert np.array_equal(ii, road_ii) and kept == [view]
+    sem = load_semantics(busy_seq.root / f.views[cam].semantics)
+    with Image.open(busy_seq.root / "truth" / "instances" / cam / Path(f.views[cam].image).name) as im:
+        shadow = (np.asarray(im).astype(np.int64) & sd.SHADOW_BIT) > 0
+    road = road_lut[sem]
+    assert np.array_equal(pools["road"], np.flatnonzero(road))
+    assert np.array_equal(pools["vehicle"], np.flatnonzero(sem == names["vehicle"]))
+    assert np.array_equal(pools["vegetation"], np.flatnonzero(sem == names["terrain"]))
+    assert np.array_equal(pools["road_shadow"], np.flatnonzero(shadow & road))
+    assert np.array_equal(pools["shadow"], np.flatnonzero(shadow & ~road))
+    assert view.sizes == {k: len(v) for k, v in pools.items()}
+    # only a few views stay expanded at once: the oldest is dropped back to its compressed form
+    others = [sd._load_view(busy_seq, g, cam, names, road_lut, sd.SimDetectorConfig())[0]
+              for g in busy_seq.frames[: sd._EXPANDED_KEEP]]
+    for o in others:
+        o.expand(kept)
+    assert len(kept) == sd._EXPANDED_KEEP and view._expanded is None
+    assert all(o._expanded is not None for o in others)

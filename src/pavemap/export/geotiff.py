@@ -27,7 +27,9 @@ import numpy as np
 import rasterio
 import rasterio.enums
 from pyproj import CRS, Transformer
+from rasterio.shutil import copy as rio_copy
 from rasterio.transform import Affine
+from rasterio.windows import Window
 from scipy import ndimage
 
 from pavemap.errors import PavemapError
@@ -62,10 +64,14 @@ def check_grid(grid: GridSpec | Mapping[str, Any], shape: tuple[int, ...] | None
     return x0, y0, res, H, W
 
 
-def stack_bands(prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec) -> np.ndarray:
-    """(5, H, W) float32: total then per class, rows going +y (the BEV convention)."""
-    prob_map = np.asarray(prob_map, dtype=np.float32)
-    class_maps = np.asarray(class_maps, dtype=np.float32)
+ROWS = 256  # raster rows written at a time: the writer's memory is a strip, not the map
+GDAL_CACHE_MB = 64  # GDAL's block cache while writing (its default, 5 % of RAM, would hold the whole map)
+
+
+def check_bands(prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec) -> list[np.ndarray]:
+    """The five bands (total, then per class) as (H, W) arrays on ``grid`` (rows going +y), uncopied."""
+    prob_map = np.asarray(prob_map)
+    class_maps = np.asarray(class_maps)
     if prob_map.ndim != 2:
         raise PavemapError(f"prob_map must be (H, W), got shape {prob_map.shape}")
     if class_maps.shape != (len(DEFECT_CODES), *prob_map.shape):
@@ -73,17 +79,25 @@ def stack_bands(prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec) ->
                            f"({len(DEFECT_CODES)}, {prob_map.shape[0]}, {prob_map.shape[1]}), "
                            f"got {class_maps.shape}")
     check_grid(grid, prob_map.shape, "BEV map grid")
-    bands = np.concatenate([prob_map[None], class_maps], axis=0)
-    return np.nan_to_num(bands, nan=0.0, posinf=1.0, neginf=0.0)
+    return [prob_map, *class_maps]
 
 
-def north_up(bands: np.ndarray, grid: GridSpec) -> tuple[np.ndarray, Affine]:
-    """Local frame: ``bands`` (B, H, W) rows going +y -> rows from the top, and the affine transform
-    (pixel corner convention) to world x, y metres."""
-    x0, y0, res, H, W = check_grid(grid, bands.shape, "BEV map grid")
-    # cell (row r, col c) centre is (x0 + c res, y0 + r res); the top raster row is r = H-1
-    out = np.ascontiguousarray(bands[:, ::-1, :])
-    return out, Affine(res, 0.0, x0 - res / 2, 0.0, -res, y0 + (H - 1) * res + res / 2)
+def _clean(a: np.ndarray) -> np.ndarray:
+    return np.nan_to_num(np.asarray(a, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+
+
+def _local_strips(bands: list[np.ndarray], valid: np.ndarray, grid: GridSpec):  # noqa: ANN202
+    """Local frame: raster rows from the top (our rows go +y), ``ROWS`` at a time: (row0, (B, h, W))."""
+    H = grid.ny
+    for r0 in range(0, H, ROWS):
+        rows = slice(H - min(r0 + ROWS, H), H - r0)  # the strip's grid rows, bottom-up
+        ok = valid[rows][::-1]
+        yield r0, np.stack([np.where(ok, _clean(b[rows][::-1]), NODATA) for b in bands]).astype(np.float32)
+
+
+def _local_transform(grid: GridSpec) -> Affine:
+    """Pixel-corner affine of the north-up local raster to world x, y metres."""
+    return Affine(grid.res, 0.0, grid.x0 - grid.res / 2, 0.0, -grid.res, grid.y1 + grid.res / 2)
 
 
 def _world_affine(lt, to_crs: Transformer, grid: GridSpec) -> tuple[np.ndarray, float]:  # noqa: ANN001
@@ -99,15 +113,10 @@ def _world_affine(lt, to_crs: Transformer, grid: GridSpec) -> tuple[np.ndarray, 
     return coef, float(np.max(np.linalg.norm(A @ coef - W, axis=1)))
 
 
-def to_crs(bands: np.ndarray, valid: np.ndarray, grid: GridSpec, origin: GeoOrigin, crs: CRS
-           ) -> tuple[np.ndarray, Affine]:
-    """Resample BEV ``bands`` (B, H, W) (rows going +y) onto a north-up raster of ``crs``.
-
-    Cells outside ``valid`` (H, W) or outside the grid become NODATA. Bilinear for the values
-    (nodata cells do not bleed in: a sample needs a valid nearest cell), pixels of about ``grid.res``
-    metres. Returns (B, H', W') float32 and the transform.
-    """
-    x0, y0, res, H, W = check_grid(grid, bands.shape, "BEV map grid")
+def _crs_raster(grid: GridSpec, origin: GeoOrigin, crs: CRS):  # noqa: ANN202
+    """The north-up raster of ``crs`` covering ``grid``: (height, width, transform, sampler), where the sampler
+    maps raster rows r0..r0+h to the grid's fractional (row, col); pixels of ``grid.res`` metres (in the CRS's
+    own unit: aligned with other data of that CRS)."""
     lt = local_tangent(origin)
     fwd = Transformer.from_crs(WGS84, crs, always_xy=True)
     coef, err = _world_affine(lt, fwd, grid)
@@ -115,28 +124,42 @@ def to_crs(bands: np.ndarray, valid: np.ndarray, grid: GridSpec, origin: GeoOrig
     xmin, ymin, xmax, ymax = grid.bounds
     lon, lat = lt.to_lonlat(np.array([xmin, xmax, xmin, xmax]), np.array([ymin, ymin, ymax, ymax]))
     e, n = (np.asarray(v) for v in fwd.transform(lon, lat))
-    # pixels of ``res`` metres of the CRS (in its own unit): aligned with other data of that CRS
-    step = res / float(crs.axis_info[0].unit_conversion_factor or 1.0)
+    step = grid.res / float(crs.axis_info[0].unit_conversion_factor or 1.0)
     e0, n_top = math.floor(e.min() / step) * step, math.ceil(n.max() / step) * step
     Wo = int(math.ceil((e.max() - e0) / step))
     Ho = int(math.ceil((n_top - n.min()) / step))
-    out = np.full((bands.shape[0], Ho, Wo), NODATA, dtype=np.float32)
-    ok_src = np.pad(valid, 1, constant_values=False)  # a ring of invalid cells: outside the grid is nodata
-    for r0 in range(0, Ho, 256):
-        rows = np.arange(r0, min(r0 + 256, Ho))
-        E, N = np.meshgrid(e0 + (np.arange(Wo) + 0.5) * step, n_top - (rows + 0.5) * step)
-        if err < 0.01 * res:
+
+    def sample(r0: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+        E, N = np.meshgrid(e0 + (np.arange(Wo) + 0.5) * step, n_top - (np.arange(r0, r0 + h) + 0.5) * step)
+        if err < 0.01 * grid.res:
             X, Y = E * coef[0, 0] + N * coef[1, 0] + coef[2, 0], E * coef[0, 1] + N * coef[1, 1] + coef[2, 1]
         else:  # far from affine (a huge area or an odd CRS): exact per pixel
             lo, la = inv.transform(E.ravel(), N.ravel())
             X, Y = (a.reshape(E.shape) for a in lt.from_lonlat(np.asarray(lo), np.asarray(la)))
-        fr, fc = (Y - y0) / res, (X - x0) / res
-        near = ok_src[np.clip(np.rint(fr).astype(np.int64) + 1, 0, H + 1), np.clip(np.rint(fc).astype(np.int64) + 1,
-                                                                                      0, W + 1)]
-        for b in range(bands.shape[0]):
-            v = ndimage.map_coordinates(bands[b], [fr, fc], order=1, mode="nearest", prefilter=False)
-            out[b, rows] = np.where(near, v, NODATA)
-    return out, Affine(step, 0.0, e0, 0.0, -step, n_top)
+        return (Y - grid.y0) / grid.res, (X - grid.x0) / grid.res
+
+    return Ho, Wo, Affine(step, 0.0, e0, 0.0, -step, n_top), sample
+
+
+def _crs_strips(bands: list[np.ndarray], valid: np.ndarray, grid: GridSpec, Ho: int, sample):  # noqa: ANN001, ANN202
+    """Bilinear resampling onto the CRS raster, ``ROWS`` at a time: (row0, (B, h, W')). Cells outside
+    ``valid`` or the grid are NODATA; nodata cells do not bleed in (a sample needs a valid nearest cell)."""
+    H, W = grid.shape
+    for r0 in range(0, Ho, ROWS):
+        fr, fc = sample(r0, min(ROWS, Ho - r0))
+        ri, ci = np.rint(fr).astype(np.int64), np.rint(fc).astype(np.int64)
+        near = (ri >= 0) & (ri < H) & (ci >= 0) & (ci < W)
+        near[near] = valid[ri[near], ci[near]]
+        out = np.full((len(bands), *fr.shape), NODATA, np.float32)
+        if near.any():
+            # bilinear reads the 2 x 2 cells around a sample: only the bands' window under this strip's samples
+            j0, j1 = max(int(np.floor(fr[near].min())), 0), min(int(np.floor(fr[near].max())) + 2, H)
+            i0, i1 = max(int(np.floor(fc[near].min())), 0), min(int(np.floor(fc[near].max())) + 2, W)
+            for k, b in enumerate(bands):
+                v = ndimage.map_coordinates(_clean(b[j0:j1, i0:i1]), [fr - j0, fc - i0], order=1, mode="nearest",
+                                            prefilter=False)
+                out[k] = np.where(near, v, NODATA)
+        yield r0, out
 
 
 def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.ndarray, grid: GridSpec,
@@ -146,27 +169,27 @@ def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.
 
     ``prob_map`` (H, W) float, ``class_maps`` (4, H, W) float, ``grid`` a GridSpec, ``valid`` (H, W)
     bool the surveyed cells (others are NODATA; default all). With ``geo_origin`` the raster is in
-    ``crs`` (``auto``: the drive's UTM zone), else in the local engineering CRS of ``name``.
+    ``crs`` (``auto``: the drive's UTM zone), else in the local engineering CRS of ``name``. The raster is
+    written in strips of ``ROWS`` rows to a tiled GTiff on disk, which GDAL's COG driver then copies with its
+    overviews: memory stays a strip of the map, so a long drive's map never sits in memory twice.
     """
-    bands = stack_bands(prob_map, class_maps, grid)
+    bands = check_bands(prob_map, class_maps, grid)
     g = as_grid(grid)
     valid = np.ones(g.shape, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
     if valid.shape != g.shape:
         raise PavemapError(f"valid mask shape {valid.shape} does not match the map grid {g.shape}")
     target = output_crs(geo_origin, crs, name)
     if geo_origin is None:
-        data, transform = north_up(np.where(valid[None], bands, NODATA).astype(np.float32), g)
+        h, w, transform = g.ny, g.nx, _local_transform(g)
+        strips = _local_strips(bands, valid, g)
     else:
-        data, transform = to_crs(bands, valid, g, geo_origin, target)
-    _, h, w = data.shape
+        h, w, transform, sample = _crs_raster(g, geo_origin, target)
+        strips = _crs_strips(bands, valid, g, h, sample)
     with rasterio.Env() as env:
         has_cog = "COG" in env.drivers()
-    profile = {"width": w, "height": h, "count": data.shape[0], "dtype": "float32", "transform": transform,
-               "compress": "DEFLATE", "predictor": 3, "nodata": NODATA, "crs": target.to_wkt()}
-    if has_cog:
-        profile.update(driver="COG", blocksize=256, overviews="AUTO", resampling="average")
-    else:
-        profile.update(driver="GTiff", tiled=True, blockxsize=256, blockysize=256)
+    profile = {"driver": "GTiff", "width": w, "height": h, "count": len(bands), "dtype": "float32",
+               "transform": transform, "compress": "DEFLATE", "predictor": 3, "nodata": NODATA,
+               "crs": target.to_wkt(), "tiled": True, "blockxsize": 256, "blockysize": 256, "BIGTIFF": "IF_SAFER"}
     tags = {
         "PAVEMAP_BANDS": "; ".join(BAND_DESCRIPTIONS),
         "PAVEMAP_FRAME": (f"{crs_label(target)}, north-up" if geo_origin is not None
@@ -176,10 +199,12 @@ def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.
         "PAVEMAP_NODATA": f"{NODATA}: outside the surveyed area (no camera saw it within range)",
     }
     final = Path(path)
-    with atomic_path(final) as tmp:
+    with atomic_path(final) as tmp, rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
+        strip_file = Path(f"{tmp}.strips.tif") if has_cog else Path(tmp)
         try:
-            with rasterio.open(tmp, "w", **profile) as ds:
-                ds.write(data)
+            with rasterio.open(strip_file, "w", **profile) as ds:
+                for r0, data in strips:
+                    ds.write(data, window=Window(0, r0, w, data.shape[1]))
                 for i, d in enumerate(BAND_DESCRIPTIONS, start=1):
                     ds.set_band_description(i, d)
                 ds.update_tags(**tags)
@@ -187,9 +212,15 @@ def write_geotiff(path: str | os.PathLike, prob_map: np.ndarray, class_maps: np.
                     factors = [f for f in (2, 4, 8, 16) if min(h, w) // f >= 64]
                     if factors:
                         ds.build_overviews(factors, rasterio.enums.Resampling.average)
+            if has_cog:
+                rio_copy(strip_file, tmp, driver="COG", compress="DEFLATE", predictor=3, blocksize=256,
+                         overviews="AUTO", resampling="average", BIGTIFF="IF_SAFER")
         except rasterio.errors.RasterioError as e:
             raise PavemapError(f"{final}: could not write the GeoTIFF ({e})") from None
+        finally:
+            if has_cog:
+                strip_file.unlink(missing_ok=True)  # our own strip file, never the user's
     return final
 
 
-__all__ = ["BAND_DESCRIPTIONS", "NODATA", "check_grid", "north_up", "stack_bands", "to_crs", "write_geotiff"]
+__all__ = ["BAND_DESCRIPTIONS", "NODATA", "check_bands", "check_grid", "write_geotiff"]

@@ -49,11 +49,7 @@ def _data_uri(img: np.ndarray, fmt: str = "PNG", quality: int = 88) -> str:
     """(H, W, 3|4) uint8 -> a data URI; large images are downsampled by an integer stride."""
     from PIL import Image
 
-    a = np.asarray(img)
-    step = int(np.ceil(max(a.shape[0], a.shape[1]) / MAX_IMAGE_SIDE))
-    if step > 1:
-        a = a[::step, ::step]
-    im = Image.fromarray(np.ascontiguousarray(a))
+    im = Image.fromarray(np.ascontiguousarray(_thin(np.asarray(img))))
     buf = io.BytesIO()
     if fmt == "JPEG":
         im.convert("RGB").save(buf, format="JPEG", quality=quality)
@@ -64,18 +60,25 @@ def _data_uri(img: np.ndarray, fmt: str = "PNG", quality: int = 88) -> str:
     return f"data:{mime};base64,{base64.b64encode(buf.getvalue()).decode('ascii')}"
 
 
+def _thin(a: np.ndarray) -> np.ndarray:
+    """A view of (H, W, ...) ``a`` strided down to at most ``MAX_IMAGE_SIDE`` a side (no copy)."""
+    step = int(np.ceil(max(a.shape[0], a.shape[1]) / MAX_IMAGE_SIDE))
+    return a[::step, ::step] if step > 1 else a
+
+
 def _file_uri(path: Path) -> str:
     return f"data:image/png;base64,{base64.b64encode(Path(path).read_bytes()).decode('ascii')}"
 
 
 def _prob_rgba(prob_map: np.ndarray) -> np.ndarray:
-    """(H, W) probability -> (H, W, 4) uint8 heat layer, transparent where ~0, rows flipped north-up."""
+    """(H, W) probability -> (h, w, 4) uint8 heat layer, transparent where ~0, rows flipped north-up, strided
+    to the report's image size first (a long drive's map in float RGBA would be 32 bytes a cell)."""
     from matplotlib import colormaps
 
-    p = np.clip(np.nan_to_num(np.asarray(prob_map, dtype=np.float32)), 0.0, 1.0)
-    rgba = colormaps["inferno"](0.25 + 0.75 * p)  # (H, W, 4) float
+    p = np.clip(np.nan_to_num(np.asarray(_thin(np.asarray(prob_map)[::-1]), dtype=np.float32)), 0.0, 1.0)
+    rgba = colormaps["inferno"](0.25 + 0.75 * p)  # (h, w, 4) float
     rgba[..., 3] = np.where(p < 0.02, 0.0, np.clip(0.25 + p, 0.0, 0.9))
-    return (rgba[::-1] * 255).astype(np.uint8)
+    return (rgba * 255).astype(np.uint8)
 
 
 def _svg_path(geom: object) -> str:

@@ -20,7 +20,7 @@ import shapely
 import torch
 
 from pavemap.device import resolve_device
-from pavemap.fuse.accumulate import Accumulators, accumulate, probability
+from pavemap.fuse.accumulate import accumulate, probability
 from pavemap.fuse.associate import associate_detections
 from pavemap.fuse.config import FusionConfig
 from pavemap.fuse.footprint import detection_footprints, instance_sizes
@@ -28,7 +28,7 @@ from pavemap.fuse.instances import build_instances
 from pavemap.fuse.maps import bev_grid, splat
 from pavemap.geometry.grid import GridSpec
 from pavemap.maintain.policy import UNASSESSED
-from pavemap.types import DEFECT_CODES, NUM_DEFECT_CLASSES, DefectInstance, Detection, Sequence
+from pavemap.types import DEFECT_CODES, DefectInstance, Detection, Sequence
 
 # Filter outcomes that are not "unusable input" (every other reason counts as invalid).
 _FILTER_OUTCOMES = ("kept", "low_conf", "off_road", "paint", "ego")  # paint / ego: pavemap.detect.paint
@@ -64,8 +64,9 @@ class FusionResult:
     metrics: dict
     surface_grid: GridSpec
     baseline: list[DefectInstance] = field(default_factory=list)
-    vertex_counts: np.ndarray | None = None  # (ny, nx, 4) int32 per-class observations
-    vertex_severity: np.ndarray | None = None  # (ny, nx) float64 EMA severity
+    observed_vertices: np.ndarray | None = None  # (M,) int64 sorted flat ids j*nx+i of the observed vertices
+    vertex_counts: np.ndarray | None = None  # (M, 4) int32 per-class observations of those vertices
+    vertex_severity: np.ndarray | None = None  # (M,) float64 their EMA severity
     instance_labels: np.ndarray | None = None  # (ny, nx) int32 on surface_grid: instance id, 0 = none
     segments: list = field(default_factory=list)  # pavemap.maintain road segments, once assessed
 
@@ -107,25 +108,23 @@ def fuse(seq: Sequence, filtered: Filtered, surface, config: FusionConfig,  # no
     V = grid_v.nx * grid_v.ny
     ny, nx = grid_v.shape
     valid = surface.valid.reshape(-1).cpu().numpy()
-    counts = acc.counts.cpu().numpy()
-    sev = acc.sev.cpu().numpy()
     obs_all = obs_t.cpu().numpy()
     keep_obs = valid[obs_all]  # associations only pick valid vertices; kept explicit for safety
     obs = obs_all[keep_obs]
+    counts = acc.counts.cpu().numpy()[keep_obs]
+    sev = acc.sev.cpu().numpy()[keep_obs]
     p_obs_np = p_obs.cpu().numpy()[keep_obs]
     pc_obs_np = pc_obs.cpu().numpy()[keep_obs]
-    nobs_obs = counts[obs].sum(1)
+    nobs_obs = counts.sum(1)
     p_dense = np.zeros(V, dtype=np.float32)
     if config.prob == "sigmoid":
         p_dense[valid] = 0.5  # the paper's form: sigma(0) = 0.5 on every unobserved vertex
     p_dense[obs] = p_obs_np
-    defect = np.zeros(V, dtype=bool)
-    defect[obs] = nobs_obs >= config.n_min
+    defect = nobs_obs >= config.n_min
     pair_det = asc.det.cpu().numpy()
     pair_vid = asc.vid.cpu().numpy()
     instances, labels = build_instances(
-        defect.reshape(ny, nx), p_dense.reshape(ny, nx), counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
-        sev.reshape(ny, nx), acc.conf.cpu().numpy().reshape(ny, nx), pair_det, pair_vid,
+        (ny, nx), obs, defect, p_obs_np, counts, sev, acc.conf.cpu().numpy()[keep_obs], pair_det, pair_vid,
         grid_v.x0, grid_v.y0, grid_v.res, min_obs=config.min_instance_obs, merge_gap_m=config.merge_gap_m,
     )
     steps.update()
@@ -147,21 +146,21 @@ def fuse(seq: Sequence, filtered: Filtered, surface, config: FusionConfig,  # no
         _centroids_from_detections(instances, inst_of, hits, ground_px)
     baseline = baseline_instances(kept, pair_det, pair_vid, grid_v.x0, grid_v.y0, grid_v.res, nx,
                                   severity_weights=config.severity_weights)
-    metrics = paper_metrics(records, defect[obs], int(valid.sum()), nobs_obs, sev[obs], instances, config, filtered)
+    metrics = paper_metrics(records, defect, int(valid.sum()), nobs_obs, sev, instances, config, filtered)
     metrics["seconds"] = {"filter": round(filtered.seconds, 3), "associate": round(t_assoc, 3),
                           "total": round(filtered.seconds + time.perf_counter() - t0, 3)}
     metrics["surface"] = {**grid_v.to_dict(), "valid_vertices": int(valid.sum())}
     return FusionResult(
         instances=instances, grid=grid, prob_map=maps[0], class_maps=maps[1:],
         vertex_prob=p_dense.reshape(ny, nx), detections=records, metrics=metrics, surface_grid=grid_v,
-        baseline=baseline, vertex_counts=counts.reshape(ny, nx, NUM_DEFECT_CLASSES),
-        vertex_severity=sev.reshape(ny, nx), instance_labels=labels.astype(np.int32),
+        baseline=baseline, observed_vertices=obs, vertex_counts=counts, vertex_severity=sev,
+        instance_labels=labels.astype(np.int32, copy=False),
     )
 
 
 def _accumulate(seq: Sequence, kept: list[Detection], kept_idx: np.ndarray, asc, grid_v: GridSpec,  # noqa: ANN001
                 config: FusionConfig, dev: torch.device):  # noqa: ANN202
-    """Accumulators over all vertices, the observed vertex ids and their probabilities (total, per class)."""
+    """Accumulators of the observed vertices, their flat ids and probabilities (total, per class)."""
     # Application order for the EMA: frame order of the sequence, then input order.
     frame_rank = {f.index: r for r, f in enumerate(seq.frames)}
     n = len(kept)
@@ -171,12 +170,10 @@ def _accumulate(seq: Sequence, kept: list[Detection], kept_idx: np.ndarray, asc,
     order[torch.as_tensor(order_np, device=dev)] = torch.arange(n, device=dev)
     cls = torch.tensor([d.cls for d in kept], dtype=torch.long, device=dev)
     conf = torch.tensor([d.conf for d in kept], dtype=torch.float64, device=dev)
-    acc = accumulate(grid_v.nx * grid_v.ny, asc.det, asc.vid, order, cls, conf, config.alpha,
-                     config.severity_weights)
+    acc = accumulate(asc.det, asc.vid, order, cls, conf, config.alpha, config.severity_weights)
     # Probabilities on the observed vertices only; every other vertex has P = 0 (tanh form).
-    obs_t = acc.seen if acc.seen is not None else torch.nonzero(acc.n > 0).squeeze(1)
-    p_obs, pc_obs = probability(Accumulators(acc.counts[obs_t], acc.sev[obs_t], acc.conf[obs_t]), config.prob)
-    return acc, obs_t, p_obs, pc_obs
+    p_obs, pc_obs = probability(acc, config.prob)
+    return acc, acc.seen, p_obs, pc_obs
 
 
 def _detection_records(seq: Sequence, kept: list[Detection], kept_idx: np.ndarray, records: list[dict], asc,  # noqa: ANN001

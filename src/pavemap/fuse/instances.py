@@ -76,20 +76,24 @@ def principal_extent(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: i
 
 
 def build_instances(
-    defect: np.ndarray, prob: np.ndarray, counts: np.ndarray, sev: np.ndarray, conf: np.ndarray,
-    pair_det: np.ndarray, pair_vid: np.ndarray, x0: float, y0: float, res: float, min_obs: int = 1,
-    merge_gap_m: float = 0.0,
+    shape: tuple[int, int], vertices: np.ndarray, defect: np.ndarray, prob: np.ndarray, counts: np.ndarray,
+    sev: np.ndarray, conf: np.ndarray, pair_det: np.ndarray, pair_vid: np.ndarray, x0: float, y0: float,
+    res: float, min_obs: int = 1, merge_gap_m: float = 0.0,
 ) -> tuple[list[DefectInstance], np.ndarray]:
-    """Instances from the defect-vertex mask.
+    """Instances from the defect vertices.
 
-    defect (ny, nx) bool; prob, sev, conf (ny, nx); counts (ny, nx, 4); pair_det / pair_vid (P,)
-    the (detection, vertex) associations (for the distinct-detection count ``observations``).
+    shape ``(ny, nx)`` of the vertex grid; vertices (M,) int64 sorted flat ids ``j*nx+i`` of the observed
+    vertices, with per vertex: defect (M,) bool, prob / sev / conf (M,), counts (M, 4); pair_det / pair_vid
+    (P,) the (detection, vertex) associations (for the distinct-detection count ``observations``).
     Components seen by fewer than ``min_obs`` distinct detections are dropped; pieces within
     ``merge_gap_m`` of each other form one instance (a MultiPolygon when they do not touch).
     Returns the instances (ids 1..K in order) and the (ny, nx) int32 label image of the kept ones.
     """
-    ny, nx = defect.shape
-    labels, k = label_components(defect, int(round(merge_gap_m / (2 * res))))
+    ny, nx = shape
+    mask = np.zeros(ny * nx, dtype=bool)
+    mask[vertices[defect]] = True
+    labels, k = label_components(mask.reshape(ny, nx), int(round(merge_gap_m / (2 * res))))
+    del mask
     if k == 0:
         return [], labels
     lab = labels.reshape(-1)
@@ -118,9 +122,9 @@ def build_instances(
     in_kept = lab2 > 0
     sel, L2, x, y = sel[in_kept], lab2[in_kept], x[in_kept], y[in_kept]
     cnt = cnt[old_ids]
-    cls_counts = np.stack([np.bincount(L2, counts.reshape(-1, NUM_DEFECT_CLASSES)[sel, c], k2 + 1)
-                           for c in range(NUM_DEFECT_CLASSES)], 1)[1:]
-    sev_f, conf_f, prob_f = sev.reshape(-1)[sel], conf.reshape(-1)[sel], prob.reshape(-1)[sel]
+    at = np.searchsorted(vertices, sel)  # labelled cells are defect vertices, so observed ones
+    cls_counts = np.stack([np.bincount(L2, counts[at, c], k2 + 1) for c in range(NUM_DEFECT_CLASSES)], 1)[1:]
+    sev_f, conf_f, prob_f = sev[at], conf[at], prob[at]
     sev_mean = np.bincount(L2, sev_f, k2 + 1)[1:] / cnt
     sev_max = np.zeros(k2 + 1)
     np.maximum.at(sev_max, L2, sev_f)
