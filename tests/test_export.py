@@ -355,13 +355,13 @@ def test_geotiff_strips_join_without_seams(tmp_path, monkeypatch, georef):
     import pavemap.export.geotiff as gt
 
     rng = np.random.default_rng(4)
-    H, W = 70, 45
+    H, W = 150, 45
     prob = rng.uniform(0, 1, (H, W)).astype(np.float32)
     prob[5, 7] = np.nan
     cls = rng.uniform(0, 1, (4, H, W)).astype(np.float32)
     valid = rng.uniform(0, 1, (H, W)) > 0.1
     grid = GridSpec(2.0, -3.0, 0.2, nx=W, ny=H)
-    origin = GeoOrigin(ORIGIN.lat, ORIGIN.lon, heading_deg=30.0) if georef else None
+    origin = GeoOrigin(ORIGIN.lat, ORIGIN.lon, heading_deg=84.0) if georef else None  # a strip: a band of rows
     got = {}
     for rows in (16, 10_000):
         monkeypatch.setattr(gt, "ROWS", rows)
