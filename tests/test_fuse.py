@@ -292,14 +292,14 @@ def test_footprint_centre_removes_centre_ray_bias(plane: HeightField) -> None:
 
 def test_mesh_mask_from_surface_semantics(plane: HeightField) -> None:
     """Mesh road mask sampled by rays: a box over a non-road strip of the mesh is filtered."""
-    from types import SimpleNamespace
+    from pavemap.mesh.model import RoadMesh
 
     seq = make_seq(1)
     logits = torch.zeros((plane.ny, plane.nx, 2))
     logits[..., 0] = 1.0  # road (class 0) everywhere ...
     ys = plane.y0 + plane.res * torch.arange(plane.ny)
     logits[ys < -2.0, :, 1] = 5.0  # ... except y < -2 m: sidewalk (class 1)
-    mesh = SimpleNamespace(surface=plane, sem_logits=logits, class_ids=[0, 1])
+    mesh = RoadMesh(plane, torch.zeros((plane.ny, plane.nx, 3)), logits, [0, 1])  # dense -> per vertex
     on = Detection(0, "front", box_of(seq, 0, (9.0, 0.5)), 0, 0.9)
     off = Detection(0, "front", box_of(seq, 0, (9.0, -3.5)), 0, 0.9)
     res = run_fusion(seq, [on, off], plane, FusionConfig(n_min=1, min_instance_obs=1), mesh=mesh,

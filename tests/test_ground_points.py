@@ -142,6 +142,11 @@ def test_check_residuals_thresholds():
     assert check_residuals(r + 0.08).flagged
     assert check_residuals(np.random.default_rng(2).normal(0.0, 0.3, 500)).flagged
     assert check_residuals(r[:5]).flagged
+    # a part of the surface metres off: median and MAD of the rest look fine, the p90 does not (KITTI-00 segment)
+    gross = np.concatenate([r[:330], np.random.default_rng(3).uniform(0.3, 6.0, 170)])
+    c = check_residuals(gross)
+    assert abs(c.median) < 0.05 and c.robust_rms < 0.10 and c.flagged and "grossly wrong" in c.reason
+    assert not check_residuals(np.concatenate([r[:470], np.full(30, 2.0)])).flagged  # 6 % stray points pass
 
 
 def test_range_mask_is_the_per_pixel_ray_test():

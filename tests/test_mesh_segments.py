@@ -159,3 +159,27 @@ def test_a_standing_vehicle_is_skipped_before_training():
     out, note = skip_standing(seq, MeshConfig())
     assert len(out.frames) == 80 and "1000 frame(s) skipped (frames 40..1039)" in note
     assert skip_standing(out, MeshConfig())[1] is None  # nothing standing left
+
+
+def test_stitcher_holds_only_the_cells_of_its_tiles():
+    """The blend's sums exist for the cells the tiles hold, not for the drive's grid box (a looped drive's box
+    is ~10x its road): an L-shaped drive's sums cover its two arms' crops, and the mesh's vertices are those."""
+    arm1 = _line(61, 1.0)
+    arm2 = arm1[-1] + np.stack([np.zeros(60), np.arange(1, 61, dtype=float)], 1)
+    xy = np.concatenate([arm1, arm2])
+    box = build_grid(xy, 0.1, 3.0).spec
+    st = Stitcher(box)
+    union = set()
+    from pavemap.mesh.segments import _tile_grid
+
+    for part in (arm1, arm2):
+        tile = _tile(part, 0.0)
+        g = tile.surface.grid
+        tj, ti = np.divmod(tile.vertex_ids.numpy(), g.nx)
+        ox, oy = round((g.x0 - box.x0) / box.res), round((g.y0 - box.y0) / box.res)
+        union |= set(((tj + oy) * box.nx + ti + ox).tolist())
+        st.add(tile, np.ones(tile.surface.valid.shape, np.float32) * _tile_grid(tile).valid)
+    assert len(st.cells) == len(union) < box.nx * box.ny / 4
+    assert all(len(a) == len(union) for a in st.sums.values())
+    m = st.mesh([0, 1], True)
+    assert int(m.surface.valid.sum()) == len(union) and m.rgb.shape == (len(union), 3)

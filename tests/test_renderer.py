@@ -41,8 +41,8 @@ def test_render_view_matches_bruteforce():
     agree = valid == hit_r
     assert agree.mean() >= 0.995
     both = valid & hit_r
-    rgb_r = (bary_r[:, :, None] * mesh.rgb.reshape(-1, 3).double().numpy()[ids_r]).sum(1)
-    sem_r = (bary_r[:, :, None] * mesh.sem_logits.reshape(-1, 3).double().numpy()[ids_r]).sum(1)
+    rgb_r = (bary_r[:, :, None] * mesh.dense(mesh.rgb).reshape(-1, 3).double().numpy()[ids_r]).sum(1)
+    sem_r = (bary_r[:, :, None] * mesh.dense(mesh.sem_logits).reshape(-1, 3).double().numpy()[ids_r]).sum(1)
     close = np.abs(out["rgb"].reshape(-1, 3).numpy() - rgb_r).max(1) < 1e-3
     assert close[both].mean() >= 0.995  # same triangle and weights: equal colours
     assert np.abs(out["sem_logits"].reshape(-1, 3).numpy() - sem_r)[both & close].max() < 1e-3
@@ -111,3 +111,32 @@ def test_road_mask_and_labels():
     assert torch.equal(m, ((lab == 0) | (lab == 9)) & mesh.surface.valid)
     mesh.has_semantics = False
     assert torch.equal(mesh.road_mask(classes), mesh.surface.valid)
+
+
+def test_road_mesh_keeps_attributes_per_vertex():
+    """A RoadMesh stores colours and logits per kept vertex (a long drive's grid box is ~10x its road): dense
+    arrays given are taken to the kept vertices, per-vertex lookups of other cells say -1, hits interpolate as
+    the dense arrays would, and a wrong shape is refused naming the field."""
+    hf = curb_field(1, dtype=torch.float32)
+    valid = hf.valid.clone()
+    valid[:, :3] = False
+    from pavemap.geometry import HeightField, intersect_rays
+
+    surf = HeightField(hf.x0, hf.y0, hf.res, hf.heights, valid)
+    g = torch.Generator().manual_seed(2)
+    rgb, sem = torch.rand(hf.ny, hf.nx, 3, generator=g), torch.randn(hf.ny, hf.nx, 4, generator=g)
+    mesh = RoadMesh(surf, rgb, sem, [0, 1, 2, 3])
+    n = int(valid.sum())
+    assert mesh.rgb.shape == (n, 3) and mesh.sem_logits.shape == (n, 4)
+    assert torch.equal(mesh.dense(mesh.rgb)[valid], rgb[valid]) and not mesh.dense(mesh.rgb)[~valid].any()
+    flat = torch.arange(hf.nx * hf.ny)
+    k = mesh.vertex_of(flat)
+    assert torch.equal(k >= 0, valid.reshape(-1)) and torch.equal(k[k >= 0], torch.arange(n))
+    cam = Camera("c", 60, 40, np.array([[40.0, 0, 29.5], [0, 40.0, 19.5], [0, 0, 1]]))
+    o, d = pixel_rays(cam.K, _look_at([1.0, -1.5, 1.6], [3.0, 2.5, 0.0]), pixel_grid(60, 40))
+    hit = intersect_rays(surf, o, d)
+    assert hit.hit.any()
+    assert torch.allclose(mesh.at_hits(hit, mesh.sem_logits), hit.interpolate(sem), atol=1e-6)
+    assert torch.equal(mesh.labels()[~valid], torch.full((int((~valid).sum()),), -1))
+    with pytest.raises(ValueError, match="RoadMesh.rgb"):
+        RoadMesh(surf, torch.rand(n + 1, 3), mesh.sem_logits, [0, 1, 2, 3])

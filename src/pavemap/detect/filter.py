@@ -177,7 +177,7 @@ def mesh_box_ratio(mesh: object, K: np.ndarray, T_world_cam: np.ndarray, boxes: 
             # A mesh trained without semantic maps has no classes: its footprint (the crop around the
             # trajectory) is the road, as stage 1 warns.
             return hit.hit.reshape(n, grid * grid).double().mean(1).cpu().numpy()
-        logits = hit.interpolate(mesh.sem_logits.detach().double())  # type: ignore[attr-defined]
+        logits = mesh.at_hits(hit, mesh.sem_logits.detach().double())  # type: ignore[attr-defined]
         ids = torch.as_tensor(mesh.class_ids, dtype=torch.long, device=dev)[logits.argmax(1)]  # type: ignore[attr-defined]
     road = torch.as_tensor(road_lut, device=dev)[ids.clamp(0, 255)] & hit.hit
     return road.reshape(n, grid * grid).double().mean(1).cpu().numpy()

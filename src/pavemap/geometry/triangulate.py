@@ -385,9 +385,11 @@ class SurfaceCheck:
 
 
 def check_residuals(residual: np.ndarray, *, max_bias_m: float = 0.05, max_rms_m: float = 0.10,
-                    tol_m: float = 0.05, min_points: int = 20) -> SurfaceCheck:
-    """Score residuals (N,) (NaN ignored). Flags a bias beyond ``max_bias_m`` or a robust RMS beyond
-    ``max_rms_m``; too few points is flagged as not checkable rather than passed."""
+                    max_p90_m: float = 0.25, tol_m: float = 0.05, min_points: int = 20) -> SurfaceCheck:
+    """Score residuals (N,) (NaN ignored). Flags a bias beyond ``max_bias_m``, a robust RMS beyond
+    ``max_rms_m``, or a tenth of the points farther than ``max_p90_m`` (a part of the surface grossly off, which
+    the median and the MAD of the rest do not see); too few points is flagged as not checkable rather than
+    passed."""
     r = residual[np.isfinite(residual)]
     if len(r) < min_points:
         return SurfaceCheck(len(r), float("nan"), float("nan"), float("nan"), float("nan"), True,
@@ -401,6 +403,9 @@ def check_residuals(residual: np.ndarray, *, max_bias_m: float = 0.05, max_rms_m
         why.append(f"surface is {-med:+.2f} m off the triangulated ground points (median)")
     if rms > max_rms_m:
         why.append(f"robust RMS {rms:.2f} m to the triangulated ground points exceeds {max_rms_m:.2f} m")
+    if p90 > max_p90_m:
+        why.append(f"{np.mean(np.abs(r) > max_p90_m):.0%} of the triangulated ground points lie more than "
+                   f"{max_p90_m:.2f} m off the surface (p90 {p90:.2f} m): part of it is grossly wrong")
     return SurfaceCheck(len(r), med, rms, p90, within, bool(why), "; ".join(why))
 
 

@@ -252,7 +252,7 @@ def self_check(geo: Geometry, spec: GridSpec, heights: np.ndarray, valid: np.nda
 
     heights (ny, nx) the final surface, valid (ny, nx) its crop, observed (ny, nx) the vertices some training
     pixel or ground point reaches. ``trustworthy`` is False when the surface disagrees with the ground points
-    (``cfg.check_max_bias_m`` / ``check_max_rms_m``) or the geometry was not observable; less than
+    (``cfg.check_max_bias_m`` / ``check_max_rms_m`` / ``check_max_p90_m``) or the geometry was not observable; less than
     ``cfg.min_observed_fraction`` of the vertices observed is a warning of its own.
     """
     out: dict = {
@@ -269,10 +269,11 @@ def self_check(geo: Geometry, spec: GridSpec, heights: np.ndarray, valid: np.nda
         h = np.where(valid, heights, np.nan).astype(np.float64)
         held = geo.check_gp is not None and geo.check_gp.observable
         c = check_surface(geo.check_gp if held else geo.gp, spec, h, max_bias_m=cfg.check_max_bias_m,
-                          max_rms_m=cfg.check_max_rms_m)
+                          max_rms_m=cfg.check_max_rms_m, max_p90_m=cfg.check_max_p90_m)
         out["check"] = {"points": c.n, "held_out": held, "median_m": _r(c.median), "robust_rms_m": _r(c.robust_rms),
                         "p90_abs_m": _r(c.p90), "frac_within_5cm": _r(c.frac_within), "flagged": c.flagged,
-                        "reason": c.reason, "max_bias_m": cfg.check_max_bias_m, "max_rms_m": cfg.check_max_rms_m}
+                        "reason": c.reason, "max_bias_m": cfg.check_max_bias_m, "max_rms_m": cfg.check_max_rms_m,
+                        "max_p90_m": cfg.check_max_p90_m}
         if c.flagged:
             issues.append(f"surface not trustworthy: {c.reason}")
             warn(issues[-1])

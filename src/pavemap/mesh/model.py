@@ -191,22 +191,25 @@ class RoadMeshModel(nn.Module):
 
 @torch.no_grad()
 def to_road_mesh(model: RoadMeshModel, class_ids: list[int], has_semantics: bool) -> RoadMesh:
-    """Densify the trained model into a RoadMesh (CPU tensors)."""
+    """The trained model as a RoadMesh (CPU tensors): dense heights, per-vertex colours and logits."""
     g = model.grid.spec
     heights = model.dense(model.current_heights(), fill=0.0).float().cpu()
-    rgb = model.dense(model.rgb.clamp(0, 1)).float().cpu()
-    sem = model.dense(model.sem).float().cpu()
     surf = HeightField(g.x0, g.y0, g.res, heights, torch.from_numpy(model.grid.valid.copy()))
-    return RoadMesh(surf, rgb, sem, list(class_ids), has_semantics)
+    # copies, never the parameters themselves (a later step would change the mesh)
+    return RoadMesh(surf, model.rgb.detach().clamp(0, 1).float().cpu().clone(),
+                    model.sem.detach().float().cpu().clone(), list(class_ids), has_semantics)
 
 
 @dataclass
 class RoadMesh:
-    """The stage-1 result. surface: heights from the trained MLP, valid = crop; rgb (ny, nx, 3) in [0, 1];
-    sem_logits (ny, nx, C); class_ids maps channel -> the sequence's class id; observed (ny, nx) bool the
-    vertices whose height was measured (None: unknown, e.g. an old mesh file): elsewhere the heights are a
-    guess; samples (N, 3) float32 the height measurements themselves (triangulated ground points, a subsample
-    of the depth pixels), or None: finer than the surface, they measure what it smooths (a pothole's floor)."""
+    """The stage-1 result. surface: heights from the trained MLP (dense (ny, nx): the ray march reads them),
+    valid = crop; rgb (Nv, 3) in [0, 1] and sem_logits (Nv, C) per kept vertex, in flat order of the crop
+    (:attr:`vertex_ids`): a long drive's grid box holds ~10x the cells of its road, so what is per vertex is
+    stored per vertex (dense (ny, nx, ...) arrays given here are taken to the kept vertices);
+    class_ids maps channel -> the sequence's class id; observed (ny, nx) bool the vertices whose height was
+    measured (None: unknown, e.g. an old mesh file): elsewhere the heights are a guess; samples (N, 3) float32
+    the height measurements themselves (triangulated ground points, a subsample of the depth pixels), or
+    None: finer than the surface, they measure what it smooths (a pothole's floor)."""
 
     surface: HeightField
     rgb: torch.Tensor
@@ -216,14 +219,60 @@ class RoadMesh:
     observed: torch.Tensor | None = None
     samples: np.ndarray | None = None
 
+    def __post_init__(self) -> None:
+        shape = tuple(self.surface.valid.shape)
+        n = self.vertex_ids.numel()
+        for name in ("rgb", "sem_logits"):
+            a = getattr(self, name)
+            if a.dim() == 3 and tuple(a.shape[:2]) == shape:
+                setattr(self, name, a.reshape(-1, a.shape[-1])[self.vertex_ids.to(a.device)])
+            elif a.dim() != 2 or a.shape[0] != n:
+                raise ValueError(f"RoadMesh.{name}: expected ({n}, C) per kept vertex or {shape} + (C,), "
+                                 f"got {tuple(a.shape)}")
+
+    @property
+    def vertex_ids(self) -> torch.Tensor:
+        """(Nv,) long sorted flat ids ``j*nx+i`` of the kept vertices (the rows of rgb / sem_logits)."""
+        got = self.__dict__.get("_vertex_ids")
+        valid = self.surface.valid
+        if got is None or got[0] is not valid:
+            got = (valid, torch.nonzero(valid.reshape(-1)).squeeze(1))
+            self.__dict__["_vertex_ids"] = got
+        return got[1]
+
+    def vertex_of(self, flat_ids: torch.Tensor) -> torch.Tensor:
+        """Row of each flat cell id (any shape) in the per-vertex arrays; -1 where the cell is not kept."""
+        vid = self.vertex_ids.to(flat_ids.device)
+        if vid.numel() == 0:
+            return torch.full_like(flat_ids, -1)
+        k = torch.searchsorted(vid, flat_ids.contiguous()).clamp(max=vid.numel() - 1)
+        return torch.where(vid[k] == flat_ids, k, torch.full_like(k, -1))
+
+    def at_hits(self, hit, values: torch.Tensor) -> torch.Tensor:  # noqa: ANN001 - a heightfield RayHits
+        """Per-vertex ``values`` (Nv, C) interpolated at ray hits -> (N, C), 0 for misses (a hit's triangle has
+        three kept corners)."""
+        k = self.vertex_of(hit.vertex_ids)
+        w = hit.bary.to(values.dtype) * (k >= 0).to(values.dtype)
+        out = (w[:, :, None] * values[k.clamp(min=0)]).sum(dim=1)
+        return out * hit.hit[:, None].to(out.dtype)
+
+    def dense(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
+        """Per-vertex values (Nv, ...) -> (ny, nx, ...) with ``fill`` off the crop."""
+        ny, nx = self.surface.valid.shape
+        out = values.new_full((ny * nx, *values.shape[1:]), fill)
+        out[self.vertex_ids.to(values.device)] = values
+        return out.reshape(ny, nx, *values.shape[1:])
+
+    def vertex_labels(self) -> torch.Tensor:
+        """(Nv,) long class id of each kept vertex's argmax channel; -1 without semantics."""
+        if not self.has_semantics or not self.sem_logits.shape[-1]:
+            return torch.full((self.vertex_ids.numel(),), -1, dtype=torch.long)
+        ids = torch.tensor(self.class_ids, dtype=torch.long, device=self.sem_logits.device)
+        return ids[self.sem_logits.argmax(dim=-1)]
+
     def labels(self) -> torch.Tensor:
         """(ny, nx) long class id of the argmax channel; -1 off the crop or without semantics."""
-        lab = torch.tensor(self.class_ids, dtype=torch.long, device=self.sem_logits.device)[
-            self.sem_logits.argmax(dim=-1)] if self.sem_logits.shape[-1] else torch.full(
-            self.surface.valid.shape, -1, dtype=torch.long)
-        if not self.has_semantics:
-            lab = torch.full_like(lab, -1)
-        return torch.where(self.surface.valid.to(lab.device), lab, torch.full_like(lab, -1))
+        return self.dense(self.vertex_labels().to(self.surface.valid.device), fill=-1)
 
     def road_mask(self, classes: list[SemanticClass]) -> torch.Tensor:
         """(ny, nx) bool: the argmax class is a road class (the whole footprint without semantics)."""
@@ -232,7 +281,7 @@ class RoadMesh:
             return valid.clone()
         road_ids = {c.id for c in classes if c.road}
         is_road = torch.tensor([cid in road_ids for cid in self.class_ids], dtype=torch.bool)
-        return is_road[self.sem_logits.argmax(dim=-1).cpu()].to(valid.device) & valid
+        return self.dense(is_road[self.sem_logits.argmax(dim=-1).cpu()].to(valid.device), fill=False)
 
     @property
     def grid(self) -> GridSpec:

@@ -29,9 +29,13 @@ def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.nd
     semantic_rgb (ny, nx, 3) uint8, height (ny, nx) float32 (NaN off the crop), valid (ny, nx) bool,
     observed (ny, nx) bool (a training pixel or ground point reaches the vertex; the crop when unknown)."""
     valid = mesh.surface.valid.cpu().numpy()
-    rgb = (mesh.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-    rgb[~valid] = 0
-    labels = mesh.labels().cpu().numpy().astype(np.int16)
+    vid = mesh.vertex_ids.cpu().numpy()
+    rgb = np.zeros((valid.size, 3), np.uint8)
+    rgb[vid] = (mesh.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+    rgb = rgb.reshape(*valid.shape, 3)
+    labels = np.full(valid.size, -1, np.int16)
+    labels[vid] = mesh.vertex_labels().cpu().numpy()
+    labels = labels.reshape(valid.shape)
     sem_rgb = colour_labels(labels, classes)
     if not mesh.has_semantics:
         sem_rgb[valid] = (128, 128, 128)
@@ -79,7 +83,7 @@ def write_mesh_ply(path: Path, mesh: RoadMesh) -> None:
     verts = np.stack([s.x0 + (vid_np % s.nx) * s.res, s.y0 + (vid_np // s.nx) * s.res,
                       s.heights.detach().cpu().reshape(-1)[vid].double().numpy()], 1)
     faces = lut[s.faces(valid_only=True).cpu()].numpy()
-    rgb = (mesh.rgb.reshape(-1, 3)[vid].clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+    rgb = (mesh.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
     colours = np.concatenate([rgb, np.full((rgb.shape[0], 1), 255, np.uint8)], 1)
     tm = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colours, process=False)
     if mesh.observed is not None:
@@ -117,13 +121,11 @@ def save_mesh(out: Path, mesh: RoadMesh) -> None:
     """mesh.npz: grid, crop, heights and compact per-vertex rgb / logits (what load_mesh reads)."""
     s = mesh.surface
     valid = s.valid.cpu().numpy()
-    flat = valid.reshape(-1)
-    C = mesh.sem_logits.shape[-1]
     with atomic_path(out / MESH_FILE) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(
             f, x0=s.x0, y0=s.y0, res=s.res, heights=s.heights.detach().cpu().numpy().astype(np.float32),
-            valid=valid, rgb=mesh.rgb.reshape(-1, 3).cpu().numpy()[flat].astype(np.float32),
-            sem_logits=mesh.sem_logits.reshape(flat.size, C).cpu().numpy()[flat].astype(np.float32),
+            valid=valid, rgb=mesh.rgb.cpu().numpy().astype(np.float32),
+            sem_logits=mesh.sem_logits.cpu().numpy().astype(np.float32),
             class_ids=np.asarray(mesh.class_ids, dtype=np.int64), has_semantics=mesh.has_semantics,
             **({} if mesh.observed is None else {"observed": mesh.observed.cpu().numpy().astype(bool)}),
             **({} if mesh.samples is None else {"samples": np.asarray(mesh.samples, np.float32).reshape(-1, 3)}))
@@ -137,19 +139,13 @@ def load_mesh(out_dir: Path) -> RoadMesh:
     try:
         z = np.load(f)
         valid = z["valid"].astype(bool)
-        ny, nx = valid.shape
-        flat = valid.reshape(-1)
-        C = int(z["sem_logits"].shape[1])
-        rgb = np.zeros((ny * nx, 3), np.float32)
-        rgb[flat] = z["rgb"]
-        sem = np.zeros((ny * nx, C), np.float32)
-        sem[flat] = z["sem_logits"]
         surf = HeightField(float(z["x0"]), float(z["y0"]), float(z["res"]),
                            torch.from_numpy(z["heights"].astype(np.float32)), torch.from_numpy(valid))
         observed = torch.from_numpy(z["observed"].astype(bool)) if "observed" in z.files else None
         samples = z["samples"].astype(np.float32).reshape(-1, 3) if "samples" in z.files else None
-        return RoadMesh(surf, torch.from_numpy(rgb.reshape(ny, nx, 3)), torch.from_numpy(sem.reshape(ny, nx, C)),
-                        [int(c) for c in z["class_ids"]], bool(z["has_semantics"]), observed, samples)
+        return RoadMesh(surf, torch.from_numpy(z["rgb"].astype(np.float32)),
+                        torch.from_numpy(z["sem_logits"].astype(np.float32)), [int(c) for c in z["class_ids"]],
+                        bool(z["has_semantics"]), observed, samples)
     except (KeyError, ValueError, OSError) as e:
         raise PavemapError(f"{f}: not a pavemap mesh file ({e})") from None
 

@@ -25,12 +25,10 @@ def view_rays(K: torch.Tensor, T: torch.Tensor, view: torch.Tensor, uv: torch.Te
     return pixel_rays(K[view], T[view], uv)
 
 
-def shade(hit, rgb: torch.Tensor, sem: torch.Tensor | None) -> dict:
-    """Interpolate dense per-vertex attributes (ny*nx, C) at ray hits -> rgb (N,3), sem (N,C), depth, valid."""
-    out = {"rgb": hit.interpolate(rgb), "depth": hit.lam * hit.hit.to(hit.lam.dtype), "valid": hit.hit}
-    if sem is not None:
-        out["sem_logits"] = hit.interpolate(sem)
-    return out
+def shade(hit, mesh: RoadMesh) -> dict:  # noqa: ANN001 - a heightfield RayHit
+    """The mesh's per-vertex attributes at ray hits -> rgb (N, 3), sem_logits (N, C), depth (N,), valid (N,)."""
+    return {"rgb": mesh.at_hits(hit, mesh.rgb.float()), "sem_logits": mesh.at_hits(hit, mesh.sem_logits.float()),
+            "depth": hit.lam * hit.hit.to(hit.lam.dtype), "valid": hit.hit}
 
 
 @torch.no_grad()
@@ -50,7 +48,7 @@ def render_view(mesh: RoadMesh, camera: Camera, T_world_cam: np.ndarray | torch.
     hit = intersect_rays(HeightField(surf.x0, surf.y0, surf.res, surf.heights.float(), surf.valid),
                          o, d, max_dist=max_dist)
     C = mesh.sem_logits.shape[-1]
-    r = shade(hit, mesh.rgb.reshape(-1, 3).float(), mesh.sem_logits.reshape(-1, C).float())
+    r = shade(hit, mesh)
     H, W = cam.height, cam.width
     ids = torch.tensor(mesh.class_ids, dtype=torch.long, device=dev)
     if C and mesh.has_semantics:

@@ -62,29 +62,43 @@ def segment_weights(grid: MeshGrid, path_xy: np.ndarray, path_s: np.ndarray, cor
 
 @dataclass
 class Stitcher:
-    """Weighted sums of the tiles on the drive's grid ``spec``; :meth:`add` a tile, then :meth:`mesh`."""
+    """Weighted sums of the tiles on the drive's grid ``spec``; :meth:`add` a tile, then :meth:`mesh`.
+
+    The sums exist only for the cells some tile holds (``cells``, sorted flat ids, grown as tiles come): a long
+    drive's grid box holds ~10x the cells its road does (KITTI-00: 29 M cells, 3.2 M under the road's crop),
+    so they are stored per held cell, not per box cell."""
 
     spec: GridSpec
     channels: int = -1  # semantic channels, set by the first tile
     sums: dict[str, np.ndarray] = field(default_factory=dict)
     samples: list[np.ndarray] = field(default_factory=list)
+    cells: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    outside: int = 0  # tile vertices outside the drive's grid, left out
 
     def _alloc(self, channels: int) -> None:
-        ny, nx = self.spec.ny, self.spec.nx
         self.channels = channels
-        self.sums = {"w": np.zeros((ny, nx), np.float32), "h": np.zeros((ny, nx), np.float64),
-                     "rgb": np.zeros((ny, nx, 3), np.float32), "sem": np.zeros((ny, nx, channels), np.float32),
-                     "observed": np.zeros((ny, nx), bool)}
+        self.sums = {"w": np.zeros(0, np.float32), "h": np.zeros(0, np.float64), "rgb": np.zeros((0, 3), np.float32),
+                     "sem": np.zeros((0, channels), np.float32), "observed": np.zeros(0, bool)}
 
-    def _window(self, g: GridSpec) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
-        """(global, tile) slices of the part of tile grid ``g`` inside the drive's grid; None if none."""
+    def _rows(self, g: GridSpec, tile_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(inside (M,) bool, rows (inside.sum(),) int64): which tile vertices (flat ids on tile grid ``g``) lie
+        on the drive's grid, and their rows in the sums (cells not held yet are added, zero)."""
         ox = int(round((g.x0 - self.spec.x0) / self.spec.res))
         oy = int(round((g.y0 - self.spec.y0) / self.spec.res))
-        x0, y0 = max(ox, 0), max(oy, 0)
-        x1, y1 = min(ox + g.nx, self.spec.nx), min(oy + g.ny, self.spec.ny)
-        if x1 <= x0 or y1 <= y0:
-            return None
-        return (slice(y0, y1), slice(x0, x1)), (slice(y0 - oy, y1 - oy), slice(x0 - ox, x1 - ox))
+        tj, ti = np.divmod(tile_ids, g.nx)
+        gi, gj = ti + ox, tj + oy
+        inside = (gi >= 0) & (gi < self.spec.nx) & (gj >= 0) & (gj < self.spec.ny)
+        flat = gj[inside] * self.spec.nx + gi[inside]
+        new = np.setdiff1d(flat, self.cells, assume_unique=True)
+        if new.size:
+            merged = np.union1d(self.cells, new)
+            at = np.searchsorted(merged, self.cells)
+            for key, a in self.sums.items():
+                grown = np.zeros((len(merged), *a.shape[1:]), a.dtype)
+                grown[at] = a
+                self.sums[key] = grown
+            self.cells = merged
+        return inside, np.searchsorted(self.cells, flat)
 
     def add(self, tile: RoadMesh, weight: np.ndarray) -> dict:
         """Blend ``tile`` with ``weight`` (its (ny, nx) :func:`segment_weights`) into the sums; returns how it
@@ -95,52 +109,58 @@ class Stitcher:
             raise ValueError(f"tile resolution {s.res} differs from the drive's {self.spec.res}")
         if not self.sums:
             self._alloc(int(tile.sem_logits.shape[-1]))
-        win = self._window(s.grid)
-        if win is None:
-            return {"seam_cells": 0, "seam_median_abs_m": None, "seam_median_m": None}
-        (gy, gx), (ty, tx) = win
-        valid = s.valid.cpu().numpy()[ty, tx]
-        w = np.where(valid, weight[ty, tx], 0.0).astype(np.float32)
-        h = s.heights.detach().cpu().numpy()[ty, tx].astype(np.float64)
-        observed = valid if tile.observed is None else tile.observed.cpu().numpy()[ty, tx] & valid
-        sums = {k: v[gy, gx] for k, v in self.sums.items()}  # views into the sums
-        before = sums["w"] > OWNED
-        both = before & sums["observed"] & observed & (w > OWNED)
-        stats = {"seam_cells": int(both.sum()), "seam_median_abs_m": None, "seam_median_m": None}
+        tv = tile.vertex_ids.cpu().numpy()
+        found, k = self._rows(s.grid, tv)
+        self.outside += int((~found).sum())
+        stats = {"seam_cells": 0, "seam_median_abs_m": None, "seam_median_m": None}
+        if not found.any():
+            return stats
+        ids = tv[found]
+        w = weight.reshape(-1)[ids].astype(np.float32)
+        h = s.heights.detach().cpu().numpy().reshape(-1)[ids].astype(np.float64)
+        observed = (np.ones(len(ids), bool) if tile.observed is None
+                    else tile.observed.cpu().numpy().reshape(-1)[ids].astype(bool))
+        sums = self.sums
+        both = (sums["w"][k] > OWNED) & sums["observed"][k] & observed & (w > OWNED)
         if both.any():
-            diff = h[both] - sums["h"][both] / sums["w"][both]
-            stats.update(seam_median_abs_m=round(float(np.median(np.abs(diff))), 5),
+            diff = h[both] - sums["h"][k][both] / sums["w"][k][both]
+            stats.update(seam_cells=int(both.sum()), seam_median_abs_m=round(float(np.median(np.abs(diff))), 5),
                          seam_median_m=round(float(np.median(diff)), 5))
-        sums["w"] += w
-        sums["h"] += w * np.where(valid, h, 0.0)
-        sums["rgb"] += w[..., None] * tile.rgb.cpu().numpy()[ty, tx]
-        sums["sem"] += w[..., None] * tile.sem_logits.cpu().numpy()[ty, tx]
-        sums["observed"] |= observed & (w > OWNED)
+        rows = np.flatnonzero(found)  # the tile's per-vertex rows of these cells
+        sums["w"][k] += w  # k holds each cell once: a tile's vertices are distinct cells
+        sums["h"][k] += w * h
+        sums["rgb"][k] += w[:, None] * tile.rgb.cpu().numpy()[rows]
+        sums["sem"][k] += w[:, None] * tile.sem_logits.cpu().numpy()[rows]
+        sums["observed"][k] |= observed & (w > OWNED)
         if tile.samples is not None and len(tile.samples):
             self.samples.append(_owned_samples(tile.samples, s.grid, weight))
         return stats
 
     def mesh(self, class_ids: list[int], has_semantics: bool) -> RoadMesh:
         """The blended surface: every cell some tile holds, heights / colours / logits their weighted means.
-        Consumes the sums (divided in place: on a long drive's grid they are most of the memory)."""
+        Consumes the sums."""
         if not self.sums:
             raise ValueError("no tile was added")
         sums, self.sums = self.sums, {}
         w = sums.pop("w")
-        valid = w > 0
-        np.divide(1.0, w, out=w, where=valid)  # w becomes 1 / w where valid, 0 elsewhere
-        w[~valid] = 0.0
-        h = (sums.pop("h") * w).astype(np.float32)
-        rgb, sem = sums.pop("rgb"), sums.pop("sem")
-        rgb *= w[..., None]
-        sem *= w[..., None]
+        k = np.flatnonzero(w > 0)
+        inv = 1.0 / w[k]
+        cells = self.cells[k]  # sorted: the mesh's vertex order
         g = self.spec
-        surf = HeightField(g.x0, g.y0, g.res, torch.from_numpy(h), torch.from_numpy(valid))
+        n = g.nx * g.ny
+        h = np.zeros(n, np.float32)
+        h[cells] = (sums.pop("h")[k] * inv).astype(np.float32)
+        valid = np.zeros(n, bool)
+        valid[cells] = True
+        observed = np.zeros(n, bool)
+        observed[cells] = sums.pop("observed")[k]
+        rgb = sums.pop("rgb")[k] * inv[:, None]
+        sem = sums.pop("sem")[k] * inv[:, None]
+        surf = HeightField(g.x0, g.y0, g.res, torch.from_numpy(h.reshape(g.shape)),
+                           torch.from_numpy(valid.reshape(g.shape)))
         samples = np.concatenate(self.samples).astype(np.float32) if self.samples else None
-        observed = sums.pop("observed")
-        observed &= valid
         return RoadMesh(surf, torch.from_numpy(rgb), torch.from_numpy(sem), list(class_ids), has_semantics,
-                        torch.from_numpy(observed), samples)
+                        torch.from_numpy(observed.reshape(g.shape)), samples)
 
 
 def _owned_samples(samples: np.ndarray, g: GridSpec, weight: np.ndarray) -> np.ndarray:
