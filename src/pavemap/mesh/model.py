@@ -10,6 +10,7 @@ carry no hidden offset. RGB (init N(0, 0.01)) and semantic logits (init 0) are p
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import typing
 from dataclasses import dataclass
@@ -76,6 +77,15 @@ def build_grid(trajectory_xy: np.ndarray, res: float, crop_m: float,
     dist = ndimage.distance_transform_edt(seeds) * res
     # The snapping of seeds to vertices costs up to res/sqrt(2); keep the crop generous by that much.
     return MeshGrid(spec, dist <= crop_m + 0.5 * res)
+
+
+def scatter_dense(values: torch.Tensor, flat_ids: torch.Tensor, shape: tuple[int, int],
+                  fill: float = 0.0) -> torch.Tensor:
+    """Per-vertex values (Nv, ...) at flat ids ``j*nx+i`` (Nv,) -> (ny, nx, ...) with ``fill`` elsewhere."""
+    ny, nx = shape
+    out = values.new_full((ny * nx, *values.shape[1:]), fill)
+    out = out.index_copy(0, flat_ids.to(values.device), values)
+    return out.reshape(ny, nx, *values.shape[1:])
 
 
 def positional_encoding(p: torch.Tensor, levels: int) -> torch.Tensor:
@@ -159,10 +169,7 @@ class RoadMeshModel(nn.Module):
 
     def dense(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
         """Compact per-vertex values (Nv, ...) -> dense (ny, nx, ...) with ``fill`` off the crop."""
-        ny, nx = self.grid.spec.shape
-        out = values.new_full((ny * nx, *values.shape[1:]), fill)
-        out = out.index_copy(0, self.vertex_flat_ids, values)
-        return out.reshape(ny, nx, *values.shape[1:])
+        return scatter_dense(values, self.vertex_flat_ids, self.grid.spec.shape, fill)
 
     @torch.no_grad()
     def current_heights(self) -> torch.Tensor:
@@ -252,16 +259,12 @@ class RoadMesh:
         """Per-vertex ``values`` (Nv, C) interpolated at ray hits -> (N, C), 0 for misses (a hit's triangle has
         three kept corners)."""
         k = self.vertex_of(hit.vertex_ids)
-        w = hit.bary.to(values.dtype) * (k >= 0).to(values.dtype)
-        out = (w[:, :, None] * values[k.clamp(min=0)]).sum(dim=1)
-        return out * hit.hit[:, None].to(out.dtype)
+        rows = dataclasses.replace(hit, vertex_ids=k.clamp(min=0), bary=hit.bary * (k >= 0).to(hit.bary.dtype))
+        return rows.interpolate(values)
 
     def dense(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
         """Per-vertex values (Nv, ...) -> (ny, nx, ...) with ``fill`` off the crop."""
-        ny, nx = self.surface.valid.shape
-        out = values.new_full((ny * nx, *values.shape[1:]), fill)
-        out[self.vertex_ids.to(values.device)] = values
-        return out.reshape(ny, nx, *values.shape[1:])
+        return scatter_dense(values, self.vertex_ids, tuple(self.surface.valid.shape), fill)
 
     def vertex_labels(self) -> torch.Tensor:
         """(Nv,) long class id of each kept vertex's argmax channel; -1 without semantics."""

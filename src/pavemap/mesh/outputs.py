@@ -75,14 +75,11 @@ def write_mesh_ply(path: Path, mesh: RoadMesh) -> None:
     import trimesh
 
     s = mesh.surface
-    flat_valid = s.valid.reshape(-1).cpu()
-    vid = torch.nonzero(flat_valid).squeeze(1)
-    lut = torch.full((s.nx * s.ny,), -1, dtype=torch.long)
-    lut[vid] = torch.arange(vid.numel())
+    vid = mesh.vertex_ids.cpu()
     vid_np = vid.numpy()
     verts = np.stack([s.x0 + (vid_np % s.nx) * s.res, s.y0 + (vid_np // s.nx) * s.res,
                       s.heights.detach().cpu().reshape(-1)[vid].double().numpy()], 1)
-    faces = lut[s.faces(valid_only=True).cpu()].numpy()
+    faces = mesh.vertex_of(s.faces(valid_only=True).cpu()).numpy()  # kept triangles: every corner a vertex
     rgb = (mesh.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
     colours = np.concatenate([rgb, np.full((rgb.shape[0], 1), 255, np.uint8)], 1)
     tm = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colours, process=False)
