@@ -93,6 +93,38 @@ def test_truth_height_reader(tmp_path, legacy):
         read_truth_height(tmp_path)
 
 
+def test_truth_window_and_banded_height_error(tmp_path):
+    """A window of the truth is the same cells as the whole truth cut, and the mesh's height RMSE taken in
+    bands of rows with the truth's window under each equals the one taken at once."""
+    from pavemap.geometry import GridSpec, HeightField
+    from pavemap.io.truth import read_truth_grid, read_truth_height, write_truth_height
+    from pavemap.mesh.evaluate import truth_metrics
+    from pavemap.mesh.model import RoadMesh
+
+    rng = np.random.default_rng(3)
+    grid = GridSpec(-10.0, -5.0, 0.05, 801, 401)  # 40 x 20 m at 5 cm
+    a = rng.normal(0.0, 0.1, grid.shape).astype(np.float32)
+    a[:40, :40] = np.nan
+    write_truth_height(tmp_path, a, grid)
+    win, g = read_truth_grid(tmp_path, (0.02, 3.0, -1.0, 2.51))
+    i0, j0 = round((g.x0 - grid.x0) / grid.res), round((g.y0 - grid.y0) / grid.res)
+    assert g.x0 <= 0.02 and g.x0 + (g.nx - 1) * g.res >= 3.0 and g.y0 <= -1.0 and g.y0 + (g.ny - 1) * g.res >= 2.51
+    np.testing.assert_array_equal(win, a[j0:j0 + g.ny, i0:i0 + g.nx])
+    assert read_truth_grid(tmp_path, (500.0, 600.0, 500.0, 600.0))[0].shape == (2, 2)  # clamped to the grid
+    h = torch.from_numpy(rng.normal(0.0, 0.1, (150, 300)).astype(np.float32))
+    valid = torch.ones(150, 300, dtype=torch.bool)
+    valid[:, :5] = False
+    mesh = RoadMesh(HeightField(-8.0, -4.0, 0.1, h, valid), torch.zeros(int(valid.sum()), 3),
+                    torch.zeros(int(valid.sum()), 0), [], False)
+    seen = torch.rand(150, 300, generator=torch.Generator().manual_seed(0)) < 0.5
+    whole, banded = truth_metrics(mesh, tmp_path, seen, band_rows=1000), truth_metrics(mesh, tmp_path, seen, 7)
+    assert whole == pytest.approx(banded, rel=1e-6) and whole["height_rmse_seen_vertices"] > 1000
+    t = read_truth_height(tmp_path)
+    z, inside = t.height_at(mesh.surface.grid_xy()[valid].double())
+    err = h[valid].double()[inside] - z[inside]
+    assert whole["height_rmse"] == pytest.approx(float(torch.sqrt((err ** 2).mean())), rel=1e-6)
+
+
 def test_geometry_does_no_file_io():
     """pavemap.geometry is pure: it imports nothing from pavemap.io (nor open()s files)."""
     import ast

@@ -241,6 +241,45 @@ def test_ground_continues_the_grade_beyond_the_trajectory_ends():
     np.testing.assert_allclose(flat, 0.0)
 
 
+def test_ground_of_another_pass_is_not_this_pass_continued():
+    """A segment of a long drive holds two passes: one climbing east that ends at x = 50, one crossing north at
+    x = 100 on level ground. The road of the second pass lies beyond the first one's end, but it is not the
+    first road continued: it keeps its own height (the old extrapolation put it 2.5 m high)."""
+    from pavemap.mesh.init_surface import idw_ground
+
+    east = np.stack([np.linspace(0.0, 50.0, 51), np.zeros(51)], 1)
+    north = np.stack([np.full(41, 100.0), np.linspace(-20.0, 20.0, 41)], 1)
+    traj = np.concatenate([north, east])  # the segment's last frame is the east pass's end, facing north's road
+    ground = np.concatenate([np.full(41, 1.0), 0.05 * east[:, 0]])
+    on_north = np.array([[100.0, 0.0], [102.0, 10.0], [98.0, -15.0]])
+    np.testing.assert_allclose(idw_ground(traj, ground, on_north), 1.0, atol=1e-5)
+    # beyond the north pass's far end its own (level) grade continues; beyond the east pass's start, its climb
+    beyond, at_end = np.array([[100.0, 30.0], [-4.0, 0.0]]), np.array([[100.0, 20.0], [0.0, 0.0]])
+    np.testing.assert_allclose(idw_ground(traj, ground, beyond) - idw_ground(traj, ground, at_end), [0.0, -0.2],
+                               atol=1e-5)
+
+
+def test_road_coordinates_and_relief_follow_each_pass():
+    """Road coordinates never run along the jump between two passes, and the relief is fitted per pass: a
+    kerb-high (0.12 m) step measured on one pass does not leak onto the other."""
+    from pavemap.mesh.init_surface import PASS_GAP_S, road_relief, track_coords
+
+    east = np.stack([np.linspace(0.0, 60.0, 61), np.zeros(61)], 1)
+    north = np.stack([np.full(61, 200.0), np.linspace(0.0, 60.0, 61)], 1)
+    traj = np.concatenate([east, north])
+    k, s, l = track_coords(traj, np.array([[30.0, 2.0], [199.0, 30.0], [120.0, 0.0]]))
+    np.testing.assert_array_equal(k, [0, 1, 0])  # the point half way along the jump belongs to the nearer end
+    np.testing.assert_allclose(s[:2], [30.0, 60.0 + PASS_GAP_S + 30.0], atol=1e-6)
+    np.testing.assert_allclose(l[:2], [2.0, 1.0], atol=1e-6)
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([np.stack([rng.uniform(0, 60, 800), rng.uniform(-5, 5, 800)], 1),
+                          np.stack([rng.uniform(195, 205, 800), rng.uniform(0, 60, 800)], 1)])
+    r = np.where(pts[:, 0] < 100.0, 0.12, 0.0)
+    q = np.array([[30.0, 0.0], [200.0, 30.0]])
+    np.testing.assert_allclose(road_relief(traj, pts, r, q), [0.12, 0.0], atol=0.01)
+    assert road_relief(traj, pts[:50], r[:50], q) is None  # too few points on every pass
+
+
 def test_pose_refinement_per_frame_moves_the_rig_as_one(depth_scene):
     """An ego-pose error (all cameras of a frame moved rigidly together) refined with one correction per frame:
     the cameras stay rigid relative to each other and the error shrinks."""

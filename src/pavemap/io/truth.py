@@ -27,8 +27,11 @@ def has_truth_height(seq_root: str | os.PathLike | None) -> bool:
     return seq_root is not None and (Path(seq_root) / HEIGHT_NPY).is_file()
 
 
-def read_truth_grid(seq_root: str | os.PathLike) -> tuple[np.ndarray, GridSpec]:
-    """(ny, nx) float32 true heights (NaN where the world has none) and their grid."""
+def read_truth_grid(seq_root: str | os.PathLike, extent: tuple[float, float, float, float] | None = None
+                    ) -> tuple[np.ndarray, GridSpec]:
+    """(ny, nx) float32 true heights (NaN where the world has none) and their grid; with ``extent``
+    (x_min, x_max, y_min, y_max) only the window of the grid that covers it (at least 2 x 2 cells, clamped
+    into the grid), read from a memory map: a kilometres-long drive's truth is hundreds of MB."""
     root = Path(seq_root)
     meta_f, arr_f = root / HEIGHT_JSON, root / HEIGHT_NPY
     for f in (meta_f, arr_f):
@@ -39,20 +42,34 @@ def read_truth_grid(seq_root: str | os.PathLike) -> tuple[np.ndarray, GridSpec]:
     except (json.JSONDecodeError, AttributeError, KeyError, TypeError, ValueError) as e:
         raise SequenceError(meta_f, f"needs x0, y0, res, nx, ny ({e})") from None
     try:
-        a = np.load(arr_f)
+        a = np.load(arr_f, mmap_mode="r")
     except (OSError, ValueError) as e:
         raise SequenceError(arr_f, f"cannot read ({e})") from None
     if a.ndim != 2 or tuple(a.shape) != grid.shape:
         raise SequenceError(arr_f, f"shape {list(a.shape)} does not match height.json shape {list(grid.shape)}")
-    return a.astype(np.float32), grid
+    if extent is None:
+        return np.asarray(a, dtype=np.float32).copy(), grid
+    (i0, i1), (j0, j1) = (_window(lo, hi, o, grid.res, n) for lo, hi, o, n in
+                          ((extent[0], extent[1], grid.x0, grid.nx), (extent[2], extent[3], grid.y0, grid.ny)))
+    win = GridSpec(grid.x0 + i0 * grid.res, grid.y0 + j0 * grid.res, grid.res, i1 - i0, j1 - j0)
+    return np.asarray(a[j0:j1, i0:i1], dtype=np.float32).copy(), win
 
 
-def read_truth_height(seq_root: str | os.PathLike) -> HeightField:
-    """The true surface as a height field; non-finite heights become invalid vertices."""
-    a, g = read_truth_grid(seq_root)
+def _window(lo: float, hi: float, origin: float, res: float, n: int) -> tuple[int, int]:
+    """Index range [a, b) of grid lines at ``origin + k res`` (k < n) covering [lo, hi], one line of margin."""
+    a = int(np.clip(np.floor((lo - origin) / res) - 1, 0, max(n - 2, 0)))
+    b = int(np.clip(np.ceil((hi - origin) / res) + 2, a + min(2, n), n))
+    return a, b
+
+
+def read_truth_height(seq_root: str | os.PathLike, extent: tuple[float, float, float, float] | None = None
+                      ) -> HeightField:
+    """The true surface (or its window covering ``extent``, see :func:`read_truth_grid`) as a height field;
+    non-finite heights become invalid vertices."""
+    a, g = read_truth_grid(seq_root, extent)
     valid = np.isfinite(a)
-    return HeightField(g.x0, g.y0, g.res, torch.from_numpy(np.where(valid, a, 0.0).astype(np.float32)),
-                       torch.from_numpy(valid))
+    a[~valid] = 0.0
+    return HeightField(g.x0, g.y0, g.res, torch.from_numpy(a), torch.from_numpy(valid))
 
 
 def write_truth_height(seq_root: str | os.PathLike, heights: np.ndarray, grid: GridSpec,

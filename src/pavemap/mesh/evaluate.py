@@ -69,31 +69,48 @@ def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, 
     }
 
 
-def height_rmse(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.Tensor,
-                truth: HeightField) -> tuple[float, int]:
-    """RMSE (m) of mesh heights vs the truth raster over kept vertices inside the truth grid, and their count."""
+def _height_sq_err(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.Tensor,
+                   truth: HeightField) -> tuple[float, int]:
+    """Sum of squared height errors (m^2) of the mesh against the truth raster over the kept vertices
+    ``valid`` inside the truth grid, and their count."""
     xy = grid_xy[valid].double().cpu()
-    t = truth  # float32 heights are interpolated in the weights' float64 (no float64 copy of a large raster)
-    z, inside = t.height_at(xy)
+    z, inside = truth.height_at(xy)  # float32 heights interpolated in float64 weights (no float64 raster copy)
     h = mesh_heights[valid].double().cpu()
-    if not inside.any():
-        return float("nan"), 0
-    err = (h[inside] - z[inside])
-    return float(torch.sqrt((err ** 2).mean())), int(inside.sum())
+    err = h[inside] - z[inside]
+    return float((err ** 2).sum()), int(inside.sum())
 
 
-def truth_metrics(mesh: RoadMesh, truth: HeightField, seen: torch.Tensor | None) -> dict[str, float | int]:
-    """Height RMSE of the mesh against the true surface over all kept vertices, and, with ``seen`` (ny, nx)
-    bool, over the vertices some training pixel reaches."""
+def truth_metrics(mesh: RoadMesh, seq_root: str | os.PathLike, seen: torch.Tensor | None,
+                  band_rows: int = 1024) -> dict[str, float | int]:
+    """Height RMSE of the mesh against the true surface of the sequence at ``seq_root`` over all kept
+    vertices, and, with ``seen`` (ny, nx) bool, over the vertices some training pixel reaches. The mesh is
+    taken ``band_rows`` rows at a time with the truth's window under them: a whole drive's truth and vertex
+    coordinates do not fit in memory together."""
     s = mesh.surface
-    rmse, n = height_rmse(s.heights, s.valid, s.grid_xy(), truth)
-    out: dict[str, float | int] = {"height_rmse": rmse, "height_rmse_vertices": n}
+    acc = {"all": [0.0, 0], "seen": [0.0, 0]}
+    for j0 in range(0, s.ny, band_rows):
+        band = HeightField(s.x0, s.y0 + j0 * s.res, s.res, s.heights[j0:j0 + band_rows], s.valid[j0:j0 + band_rows])
+        if not bool(band.valid.any()):
+            continue
+        truth = read_truth_height(seq_root, band.extent)
+        xy = band.grid_xy()
+        masks = {"all": band.valid}
+        if seen is not None:
+            masks["seen"] = band.valid & seen[j0:j0 + band_rows].to(band.valid.device)
+        for key, mask in masks.items():
+            se, n = _height_sq_err(band.heights, mask, xy, truth)
+            acc[key][0] += se
+            acc[key][1] += n
+    out: dict[str, float | int] = {"height_rmse": _rmse(*acc["all"]), "height_rmse_vertices": acc["all"][1]}
     if seen is not None:
         # A forward camera never sees the crop behind the first frame: its heights are a guess, so the
         # error over the vertices a training pixel does reach is reported too.
-        rmse_s, n_s = height_rmse(s.heights, s.valid & seen, s.grid_xy(), truth)
-        out.update(height_rmse_seen=rmse_s, height_rmse_seen_vertices=n_s)
+        out.update(height_rmse_seen=_rmse(*acc["seen"]), height_rmse_seen_vertices=acc["seen"][1])
     return out
+
+
+def _rmse(se: float, n: int) -> float:
+    return math.sqrt(se / n) if n else float("nan")
 
 
 def stage_metrics(fit: Fit, data: TrainData, mesh: RoadMesh, fill: float, eval_delta: torch.Tensor | None,
@@ -128,5 +145,5 @@ def stage_metrics(fit: Fit, data: TrainData, mesh: RoadMesh, fill: float, eval_d
         metrics["refined_poses"] = {f"{k.frame}/{k.camera}": Tr[i].tolist() for i, k in enumerate(pool.keys)}
     if has_truth_height(seq_root):
         seen_grid = None if seen is None else model.dense(seen, fill=False).cpu()
-        metrics.update(truth_metrics(mesh, read_truth_height(seq_root), seen_grid))
+        metrics.update(truth_metrics(mesh, seq_root, seen_grid))
     return metrics

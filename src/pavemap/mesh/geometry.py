@@ -34,7 +34,7 @@ from pavemap.mesh.ground_points import (
     find_ground_points,
 )
 from pavemap.mesh.init_surface import camera_height as searched_height
-from pavemap.mesh.relief import ReliefFit, fit_relief
+from pavemap.mesh.relief import ReliefFit
 from pavemap.mesh.setup import TrainData, Warn
 from pavemap.types import Sequence
 
@@ -234,16 +234,14 @@ def anchor_correction(points: np.ndarray | None, spec: GridSpec, heights: np.nda
     sparse depth the depth loss alone did not hold it either: +2.6 cm on the kitti-like bench drive.
     """
     from pavemap.geometry.triangulate import sample_grid
-    from pavemap.mesh.init_surface import along_track
+    from pavemap.mesh.init_surface import road_relief
     if points is None or len(points) == 0 or len(traj_xy) < 2:
         return None
     z = sample_grid(spec, heights, points[:, :2])
     ok = np.isfinite(z)
     if ok.sum() < 100 or np.linalg.norm(np.diff(traj_xy, axis=0), axis=1).sum() < 2.0:
         return None
-    s_p, t_p = along_track(traj_xy, points[ok, :2])
-    s_v, t_v = along_track(traj_xy, vertex_xy)
-    return fit_relief(s_p, t_p, points[ok, 2] - z[ok], s_v, t_v, ANCHOR_FIT)
+    return road_relief(traj_xy, points[ok, :2], points[ok, 2] - z[ok], vertex_xy, ANCHOR_FIT)
 
 
 def self_check(geo: Geometry, spec: GridSpec, heights: np.ndarray, valid: np.ndarray, observed: np.ndarray,

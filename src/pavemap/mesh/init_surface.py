@@ -26,6 +26,7 @@ import torch
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool
 from pavemap.mesh.model import MeshGrid
+from pavemap.mesh.relief import ReliefFit
 from pavemap.mesh.render import view_rays
 
 
@@ -142,27 +143,35 @@ def ground_under_trajectory(grid: MeshGrid, traj_xy: np.ndarray, ground_z: np.nd
 def idw_ground(traj_xy: np.ndarray, ground_z: np.ndarray, xy: np.ndarray, k: int = 4,
                grade_m: float = 5.0) -> np.ndarray:
     """(N,) float32 ground height under the trajectory at points ``xy`` (N, 2): inverse-distance weighting
-    of ``ground_z`` (F,) at the trajectory points ``traj_xy`` (F, 2), k nearest; beyond either end of the
-    trajectory the road's grade over its last ``grade_m`` metres continues linearly.
+    of ``ground_z`` (F,) at the trajectory points ``traj_xy`` (F, 2), k nearest; beyond either end of each
+    pass (:func:`path_passes`) the road's grade over its last ``grade_m`` metres continues linearly, for the
+    points whose nearest trajectory point is that end.
 
     Why the grade: behind the first frame a forward camera never sees the ground, and holding the first
-    height there leaves the start of a climbing road off by the climb.
+    height there leaves the start of a climbing road off by the climb. Why only beyond the path: a long
+    drive's segment holds several passes, and a road another pass drove along lies "beyond" this pass's end
+    too; continuing the end's grade over it put a KITTI-00 segment 6.8 m below the road 120 m away.
     """
     from scipy.spatial import cKDTree
 
+    traj_xy = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
     q = np.asarray(xy, dtype=np.float64).copy()
     rise = np.zeros(len(q))
     if len(traj_xy) >= 2:
-        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj_xy, axis=0), axis=1))])
-        for end, inner in ((0, int(np.searchsorted(along, min(grade_m, along[-1])))),
-                           (len(traj_xy) - 1, int(np.searchsorted(along, max(along[-1] - grade_m, 0.0))))):
-            out = traj_xy[end] - traj_xy[inner]
-            n = float(np.linalg.norm(out))
-            if inner == end or n < 1e-6:
-                continue
-            beyond = np.clip((q - traj_xy[end]) @ (out / n), 0.0, None)  # metres past this end, along the road
-            q -= beyond[:, None] * (out / n)  # the height at the end's cross-section, then the grade
-            rise += beyond * (ground_z[end] - ground_z[inner]) / n
+        d_min, _ = cKDTree(traj_xy).query(q)
+        for p in path_passes(traj_xy):
+            piece = traj_xy[p]
+            along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(piece, axis=0), axis=1))])
+            for end, inner in ((0, int(np.searchsorted(along, min(grade_m, along[-1])))),
+                               (len(piece) - 1, int(np.searchsorted(along, max(along[-1] - grade_m, 0.0))))):
+                out = piece[end] - piece[inner]
+                n = float(np.linalg.norm(out))
+                if inner == end or n < 1e-6:
+                    continue
+                past = np.linalg.norm(xy - piece[end], axis=1) <= d_min + 1e-9  # this end is the nearest point
+                beyond = np.clip((q - piece[end]) @ (out / n), 0.0, None) * past  # metres past it, along the road
+                q -= beyond[:, None] * (out / n)  # the height at the end's cross-section, then the grade
+                rise += beyond * (ground_z[p][end] - ground_z[p][inner]) / n
     k = min(k, len(traj_xy))
     dist, idx = cKDTree(traj_xy).query(q, k=k)
     dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
@@ -191,11 +200,7 @@ def depth_relief(pts: np.ndarray, grid: MeshGrid, traj: np.ndarray, ground_z: np
     r = pts[:, 2] - idw_ground(traj[:, :2], ground_z, pts[:, :2])
     moving = len(traj) >= 2 and np.linalg.norm(np.diff(traj[:, :2], axis=0), axis=1).sum() > 2 * cell
     if method == "road" and moving:
-        from pavemap.mesh.relief import fit_relief
-
-        s_p, t_p = along_track(traj[:, :2], pts[:, :2])
-        s_v, t_v = along_track(traj[:, :2], grid.vertex_xy())
-        relief = fit_relief(s_p, t_p, r, s_v, t_v)
+        relief = road_relief(traj[:, :2], pts[:, :2], r, grid.vertex_xy())
         if relief is not None:
             return relief.astype(np.float32)
     px, py = pts[:, 0] - g.x0, pts[:, 1] - g.y0  # offsets from the grid origin
@@ -295,20 +300,80 @@ def _fine_relief(px: np.ndarray, py: np.ndarray, r2: np.ndarray, grid: MeshGrid,
     return np.where(w > 1e-6, v / np.maximum(w, 1e-6), 0.0), w
 
 
-def along_track(traj_xy: np.ndarray, xy: np.ndarray, step: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) along-track s and signed cross-track l (m, left positive) of points ``xy`` (N, 2) relative to the
-    trajectory polyline ``traj_xy`` (F, 2), F >= 2; beyond the ends s continues along the end tangents."""
+PASS_GAP_S = 100.0  # m of "along the road" between passes: fills along the road never reach across
+
+
+def path_cuts(traj_xy: np.ndarray, min_gap_m: float = 5.0, gap_factor: float = 5.0) -> np.ndarray:
+    """(C,) int64 positions c where the path (F, 2) jumps between frames c and c + 1: more than
+    ``max(min_gap_m, gap_factor x the median moving step)`` apart (dropped frames, or the passes of a long
+    drive's segment)."""
+    t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    if len(t) < 3:
+        return np.zeros(0, np.int64)
+    step = np.linalg.norm(np.diff(t, axis=0), axis=1)
+    moving = step[step > 1e-3]
+    limit = max(min_gap_m, gap_factor * float(np.median(moving))) if moving.size else math.inf
+    return np.flatnonzero(step > limit)
+
+
+def path_passes(traj_xy: np.ndarray) -> list[slice]:
+    """The stretches of the path (F, 2) between its jumps (:func:`path_cuts`), as slices, in order."""
+    b = np.concatenate([[0], path_cuts(traj_xy) + 1, [len(traj_xy)]])
+    return [slice(int(a), int(c)) for a, c in zip(b[:-1], b[1:], strict=True)]
+
+
+def track_coords(traj_xy: np.ndarray, xy: np.ndarray, step: float = 0.1
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N,) pass, along-track s and signed cross-track l (m, left positive) of points ``xy`` (N, 2) relative
+    to the nearest pass (:func:`path_passes`, those of two frames or more) of the trajectory ``traj_xy``
+    (F, 2), F >= 2. Beyond a pass's ends s continues along its end tangents; each pass's s starts
+    ``PASS_GAP_S`` after the previous one's end. The polyline never crosses a jump between passes: a
+    straight line there (over buildings, fields) is no road."""
     from scipy.spatial import cKDTree
 
-    seg = np.linalg.norm(np.diff(traj_xy, axis=0), axis=1)
-    along = np.concatenate([[0.0], np.cumsum(seg)])
-    s_dense = np.linspace(0.0, along[-1], max(2, int(along[-1] / step) + 1))
-    c = np.stack([np.interp(s_dense, along, traj_xy[:, 0]), np.interp(s_dense, along, traj_xy[:, 1])], 1)
-    t = np.gradient(c, axis=0)
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    passes = [p for p in path_passes(t) if p.stop - p.start >= 2] or [slice(0, len(t))]
+    cs, ss, ts, ks, offset = [], [], [], [], 0.0
+    for k, p in enumerate(passes):
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(t[p], axis=0), axis=1))])
+        s_dense = np.linspace(0.0, along[-1], max(2, int(along[-1] / step) + 1))
+        c = np.stack([np.interp(s_dense, along, t[p, 0]), np.interp(s_dense, along, t[p, 1])], 1)
+        tg = np.gradient(c, axis=0)
+        cs.append(c), ts.append(tg / np.maximum(np.linalg.norm(tg, axis=1, keepdims=True), 1e-12))
+        ss.append(s_dense + offset), ks.append(np.full(len(c), k))
+        offset += float(along[-1]) + PASS_GAP_S
+    c, s_dense, tg, kk = np.concatenate(cs), np.concatenate(ss), np.concatenate(ts), np.concatenate(ks)
     _, i = cKDTree(c).query(xy)
     d = xy - c[i]
-    return s_dense[i] + (d * t[i]).sum(1), d[:, 0] * -t[i, 1] + d[:, 1] * t[i, 0]
+    return kk[i], s_dense[i] + (d * tg[i]).sum(1), d[:, 0] * -tg[i, 1] + d[:, 1] * tg[i, 0]
+
+
+def along_track(traj_xy: np.ndarray, xy: np.ndarray, step: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) along-track s and signed cross-track l of points ``xy`` (N, 2): :func:`track_coords` without
+    the pass."""
+    return track_coords(traj_xy, xy, step)[1:]
+
+
+def road_relief(traj_xy: np.ndarray, pts_xy: np.ndarray, r: np.ndarray, q_xy: np.ndarray,
+                fit: ReliefFit | None = None) -> np.ndarray | None:
+    """(Q,) float64 relief at ``q_xy`` (Q, 2) from the residuals ``r`` (N,) of points at ``pts_xy`` (N, 2),
+    fitted in road coordinates (:func:`pavemap.mesh.relief.fit_relief`) pass by pass: each pass of
+    ``traj_xy`` (F, 2) fits the points and query points nearest to it. 0 where a pass has too few points;
+    None where none has enough.
+
+    Why per pass: one lattice along a path that jumps between passes spans the jumps (road no camera saw)
+    and couples roads that only meet at a junction."""
+    from pavemap.mesh.relief import fit_relief
+
+    k_p, s_p, t_p = track_coords(traj_xy, pts_xy)
+    k_q, s_q, t_q = track_coords(traj_xy, q_xy)
+    out, fitted = np.zeros(len(q_xy)), False
+    for k in np.unique(k_q):
+        qi, pi = k_q == k, k_p == k
+        rel = fit_relief(s_p[pi], t_p[pi], r[pi], s_q[qi], t_q[qi], fit)
+        if rel is not None:
+            out[qi], fitted = rel, True
+    return out if fitted else None
 
 
 def fill_along_track(relief: np.ndarray, measured: np.ndarray, s: np.ndarray, l: np.ndarray,

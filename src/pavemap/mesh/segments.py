@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from pavemap.device import resolve_device
-from pavemap.io.truth import has_truth_height, read_truth_height
+from pavemap.io.truth import has_truth_height
 from pavemap.mesh import tiles
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import finite_views, split_frames
@@ -309,5 +309,5 @@ def _drive_metrics(seq: Sequence, mesh: RoadMesh, rows: list[dict], notes: list[
         "seconds": seconds, "frames": frames, "seconds_per_frame": seconds / max(1, frames),
     }
     if has_truth_height(seq.root):
-        metrics.update(truth_metrics(mesh, read_truth_height(seq.root), mesh.observed))
+        metrics.update(truth_metrics(mesh, seq.root, mesh.observed))
     return metrics

@@ -13,6 +13,7 @@ from pavemap.errors import PavemapError
 from pavemap.mesh.bake import batch_hits, pool_hits
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
+from pavemap.mesh.init_surface import path_cuts
 from pavemap.mesh.model import MeshGrid, RoadMeshModel, build_grid
 from pavemap.types import SemanticClass, Sequence, View
 
@@ -106,12 +107,8 @@ def path_pieces(traj_xy: np.ndarray, frame_ids: list[int], warn: Warn | None = N
     median step)`` apart: dropped frames, or the passes of a long drive's segment. The crop follows each piece,
     not a straight line across the gap (road no camera drove past). Each gap is named through ``warn``."""
     t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
-    if len(t) < 3:
-        return [t]
+    cuts = path_cuts(t, min_gap_m, gap_factor)
     step = np.linalg.norm(np.diff(t, axis=0), axis=1)
-    moving = step[step > 1e-3]
-    limit = max(min_gap_m, gap_factor * float(np.median(moving))) if moving.size else math.inf
-    cuts = np.flatnonzero(step > limit)
     if warn is not None:
         for c in cuts[np.diff(np.asarray(frame_ids))[cuts] == 1]:  # gaps between consecutive frame indices
             warn(f"frames {frame_ids[c]} and {frame_ids[c + 1]} lie {step[c]:.0f} m apart (dropped frames, or a "
