@@ -306,3 +306,40 @@ def test_mesh_mask_from_surface_semantics(plane: HeightField) -> None:
                      filt=FilterConfig(mask="mesh"))
     assert [r["reason"] for r in res.detections] == ["kept", "off_road"]
     assert res.detections[0]["r_road"] == 1.0 and res.detections[1]["r_road"] == 0.0
+
+
+def _crack_instances(cells: list[tuple[slice, slice, int]], crack_join_m: float) -> list:
+    """build_instances on a 10 cm grid whose defect vertices are the given (rows, cols, class) rectangles."""
+    from pavemap.fuse.instances import build_instances
+
+    ny, nx = 80, 120
+    cls = np.full((ny, nx), -1)
+    for rows, cols, c in cells:
+        cls[rows, cols] = c
+    vertices = np.arange(ny * nx, dtype=np.int64)
+    defect = (cls >= 0).reshape(-1)
+    counts = np.zeros((ny * nx, 4), np.int64)
+    counts[defect, cls.reshape(-1)[defect]] = 3
+    ones = np.ones(ny * nx)
+    pair_vid = np.flatnonzero(defect)
+    pair_det = np.arange(len(pair_vid)) % 5
+    inst, _ = build_instances((ny, nx), vertices, defect, ones, counts, ones, ones, pair_det, pair_vid,
+                              0.0, 0.0, 0.1, min_obs=1, merge_gap_m=0.4, crack_join_m=crack_join_m)
+    return inst
+
+
+def test_pieces_of_one_crack_join_but_neighbouring_defects_do_not() -> None:
+    """A longitudinal crack (class 0) faint over 0.7 m falls into two pieces: one instance. A parallel crack
+    0.7 m beside it, a transverse crack (class 1) 0.7 m beyond its end and an alligator patch (class 2) in line
+    stay apart, and with crack_join_m 0 nothing joins."""
+    line = [(slice(10, 12), slice(5, 35), 0), (slice(10, 12), slice(42, 60), 0)]  # 3 m and 1.8 m, 0.7 m gap
+    beside = [(slice(18, 20), slice(5, 35), 0)]  # parallel, 0.7 m to the side
+    transverse = [(slice(30, 60), slice(67, 69), 1), (slice(30, 60), slice(76, 78), 1)]  # side by side across
+    patch = [(slice(9, 14), slice(67, 80), 2)]  # areal, 0.7 m past the crack's end
+    inst = _crack_instances(line + beside + transverse + patch, 1.0)
+    got = sorted((i.cls, round(i.area_m2, 2)) for i in inst)
+    assert got == [(0, 0.6), (0, 0.96), (1, 0.6), (1, 0.6), (2, 0.65)], got
+    joined = next(i for i in inst if i.cls == 0 and round(i.area_m2, 2) == 0.96)
+    assert joined.length_m == pytest.approx(5.5, abs=0.15)  # end to end across the gap
+    assert len(_crack_instances(line + beside, 0.0)) == 3
+    assert len(_crack_instances(line, 0.5)) == 2  # the gap is wider than the join distance

@@ -46,6 +46,12 @@ def test_plan_finds_the_other_pass_of_an_out_and_back_drive():
     assert set(first.revisit) & set(last.own) and set(last.revisit) & set(first.own)
     rx = xy[list(first.revisit), 0]
     assert rx.min() < 10 and rx.max() < 150
+    # thinned to one revisit frame per 3 m of their pass: the same stretch of the other pass, a third of its views
+    thin = plan_segments(xy, 100.0, 15.0, 10.0, revisit_spacing_m=3.0)
+    assert [p.own for p in thin] == [p.own for p in plans]
+    kept = np.array(thin[0].revisit)
+    assert set(kept) <= set(first.revisit) and abs(len(kept) - len(first.revisit) / 3) <= 2
+    assert np.diff(kept).min() >= 3 and xy[kept, 0].min() < 13 and xy[kept, 0].max() > rx.max() - 3
 
 
 def test_standing_vehicle_frames_are_skipped():

@@ -40,6 +40,8 @@ class FusionConfig:
     - ``min_instance_obs``: drop instances seen by fewer distinct detections (outlier guard).
     - ``merge_gap_m``: defect-vertex pieces closer than this form one instance (views of one
       long crack land as separate blobs on an imperfect surface).
+    - ``crack_join_m``: pieces of one longitudinal or transverse crack (same class, in line) up to this
+      far apart along it form one instance (0: off).
     - ``centroid``: instance centre = inverse-variance weighted mean of its detections' surface
       points (``detections``; weight 1/(road metres per pixel)^2) or the vertex mean (``vertices``).
     - ``severity_weights``: severity of D00, D10, D20, D40 in the EMA.
@@ -60,6 +62,7 @@ class FusionConfig:
     n_min: int = 2
     min_instance_obs: int = 2
     merge_gap_m: float = 0.4
+    crack_join_m: float = 1.0
     splat_res: float = 0.1
     splat_sigma: float = 0.15
     severity_weights: tuple[float, ...] = (0.3, 0.4, 0.7, 1.0)
@@ -86,7 +89,7 @@ class FusionConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise PavemapError(f"fusion.{name} must be positive, got {v}")
-        for name in ("merge_gap_m", "splat_sigma", "beta0", "beta1"):
+        for name in ("merge_gap_m", "crack_join_m", "splat_sigma", "beta0", "beta1"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise PavemapError(f"fusion.{name} must be >= 0, got {v}")

@@ -126,6 +126,7 @@ def fuse(seq: Sequence, filtered: Filtered, surface, config: FusionConfig,  # no
     instances, labels = build_instances(
         (ny, nx), obs, defect, p_obs_np, counts, sev, acc.conf.cpu().numpy()[keep_obs], pair_det, pair_vid,
         grid_v.x0, grid_v.y0, grid_v.res, min_obs=config.min_instance_obs, merge_gap_m=config.merge_gap_m,
+        crack_join_m=config.crack_join_m,
     )
     steps.update()
 

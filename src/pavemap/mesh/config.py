@@ -156,6 +156,9 @@ class MeshConfig:
     # Frames of another pass (a loop, a U-turn) within this distance of a segment's path join its views, so that
     # revisited road is one surface seen by both passes.
     segment_revisit_m: float = 10.0
+    # ... one of them every this many metres along its pass (0: all): the own pass already sees the road every
+    # metre, and every revisit view costs stage 1 as much as an own one (see the README's long-drive bench).
+    segment_revisit_spacing_m: float = 3.0
     # A standing vehicle: frames within this distance (m) of the last frame kept add nothing but memory.
     segment_min_step_m: float = 0.1
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
@@ -191,7 +194,8 @@ class MeshConfig:
             _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
                      "pose_align_rounds", "exposure_rounds", "seed", "init_fine_cell_m", "check_holdout_every",
-                     "view_range_m", "segment_m", "segment_overlap_m", "segment_revisit_m", "segment_min_step_m",
+                     "view_range_m", "segment_m", "segment_overlap_m", "segment_revisit_m", "segment_revisit_spacing_m",
+                     "segment_min_step_m",
                      "moving_cutoff", "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height", "lr_pose", "lr_pose_rot",
                      "w_rgb", "w_sem", "w_depth", "w_smooth"):
             _require(self, name, lambda v: v >= 0, "must be >= 0")

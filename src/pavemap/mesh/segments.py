@@ -77,10 +77,12 @@ def moving_frames(traj_xy: np.ndarray, min_step_m: float) -> np.ndarray:
     return keep
 
 
-def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisit_m: float) -> list[SegmentPlan]:
+def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisit_m: float,
+                  revisit_spacing_m: float = 0.0) -> list[SegmentPlan]:
     """Segments of the path (F, 2) by length: ``round(path / length_m)`` equal cores (at least one), each with
     the frames within ``overlap_m`` of its core, plus the frames of other passes within ``revisit_m`` of its
-    core's path and those within ``overlap_m`` of them along their own pass (the frames that look at it)."""
+    core's path and those within ``overlap_m`` of them along their own pass (the frames that look at it), of
+    those one per ``revisit_spacing_m`` of path (0: all)."""
     t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
     s = path_metres(t)
     n = max(1, int(round(s[-1] / length_m))) if length_m > 0 else 1
@@ -101,10 +103,18 @@ def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisi
                 j = np.clip(np.searchsorted(near_s, s[others]), 1, near_s.size)
                 gap = np.minimum(np.abs(s[others] - near_s[j - 1]), np.abs(near_s[np.minimum(j, near_s.size - 1)]
                                                                           - s[others]))
-                revisit = others[gap <= overlap_m]
+                revisit = _thin(others[gap <= overlap_m], s, revisit_spacing_m)
         plans.append(SegmentPlan(k, (float(lo), float(hi)), tuple(int(i) for i in own),
                                  tuple(int(i) for i in revisit)))
     return plans
+
+
+def _thin(idx: np.ndarray, s: np.ndarray, spacing_m: float) -> np.ndarray:
+    """The first of the frames ``idx`` (sorted) in each ``spacing_m`` of path length ``s`` (all with 0)."""
+    if spacing_m <= 0 or idx.size == 0:
+        return idx
+    _, first = np.unique(np.floor(s[idx] / spacing_m), return_index=True)
+    return idx[np.sort(first)]
 
 
 def _drive_positions(seq: Sequence) -> tuple[list[int], np.ndarray]:
@@ -180,7 +190,8 @@ def plan_drive(seq: Sequence, cfg: MeshConfig) -> DrivePlan:
     pos, traj = _drive_positions(seq)
     if len(pos) < len(seq.frames):
         notes.append(f"{len(seq.frames) - len(pos)} frame(s) with a NaN/infinite pose skipped")
-    local = plan_segments(traj[:, :2], cfg.segment_m, cfg.segment_overlap_m, cfg.segment_revisit_m)
+    local = plan_segments(traj[:, :2], cfg.segment_m, cfg.segment_overlap_m, cfg.segment_revisit_m,
+                          cfg.segment_revisit_spacing_m)
     plans = [SegmentPlan(p.index, p.core, tuple(pos[i] for i in p.own), tuple(pos[i] for i in p.revisit))
              for p in local]
     held_local = split_frames(len(pos), cfg.holdout_every, 1)[1]
