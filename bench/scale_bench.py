@@ -129,9 +129,13 @@ def row(seq: Path, out: Path, frames: int, got: dict, synth_s: float | None, seg
 
     path = float(path_metres(read_sequence(seq).trajectory()[:, :2])[-1])
     stage1 = m["seconds"]["mesh"]
+    # views stage 1 processed: a segment's own frames (with the overlaps) and other passes' frames (revisits)
+    views = sum((r.get("train_views") or 0) + (r.get("heldout_views") or 0) for r in mesh_m.get("segments") or [])
+    views = views or (mesh_m.get("train_views") or 0) + (mesh_m.get("heldout_views") or 0)
     return {"frames": frames, "segmented": bool(mesh_m.get("segmented")), "path_m": round(path, 1),
             "segments": len(mesh_m.get("segments") or [1]), "synth_s": synth_s,
             "stage1_s": round(stage1, 1), "stage1_s_per_frame": round(stage1 / frames, 3),
+            "views_processed": views, "stage1_s_per_view": round(stage1 / views, 3) if views else None,
             "total_s": round(m["seconds"]["total"], 1), "peak_rss_gib": got["peak_rss_gib"],
             "grid_cells": (mesh_m.get("grid") or {}).get("nx", 0) * (mesh_m.get("grid") or {}).get("ny", 0),
             "vertices": mesh_m.get("vertices"), "psnr": mesh_m.get("psnr"),
@@ -142,20 +146,25 @@ def row(seq: Path, out: Path, frames: int, got: dict, synth_s: float | None, seg
             "split_defects": split, "per_segment": segs}
 
 
-def _merged(rows: list[dict], commit: str) -> list[dict]:
+def _merged(rows: list[dict], commit: str) -> tuple[list[dict], list[dict]]:
     """This run's rows (each stamped with ``commit``) plus the rows of the results file that it did not rerun
     (frames, variant), which keep their own commit (the file's, for rows written before rows carried one): a
-    long row can be measured on its own without losing the others."""
+    long row can be measured on its own without losing the others. Also the history: the file's earlier
+    history plus the summaries (no per-segment rows) of the rows this run replaced, so that the figures the
+    README quotes for earlier commits stay in the results."""
     for r in rows:
         r.setdefault("commit", commit)
     try:
         old = json.loads(OUT.read_text())
     except (OSError, ValueError):
-        return rows
+        return rows, []
     done = {(r["frames"], r["variant"]) for r in rows}
-    kept = [{**r, "commit": r.get("commit", old.get("commit"))} for r in old.get("rows", [])
-            if (r.get("frames"), r.get("variant")) not in done]
-    return sorted(kept + rows, key=lambda r: (r["frames"], r["variant"] != "default", r["variant"]))
+    previous = [{**r, "commit": r.get("commit", old.get("commit"))} for r in old.get("rows", [])]
+    kept = [r for r in previous if (r.get("frames"), r.get("variant")) not in done]
+    replaced = [{k: v for k, v in r.items() if k != "per_segment"} for r in previous
+                if (r.get("frames"), r.get("variant")) in done]
+    return (sorted(kept + rows, key=lambda r: (r["frames"], r["variant"] != "default", r["variant"])),
+            old.get("history", []) + replaced)
 
 
 def main() -> None:
@@ -182,7 +191,7 @@ def main() -> None:
                          "load_avg_end": [round(x, 2) for x in os.getloadavg()]})
             print(json.dumps({k: v for k, v in rows[-1].items() if k != "per_segment"}), flush=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
-    rows = _merged(rows, commit.strip())
+    rows, history = _merged(rows, commit.strip())
     seg = [r for r in rows if r["variant"] == "default"]
     spf = [r["stage1_s_per_frame"] for r in seg]
     write_results(OUT, {
@@ -193,6 +202,7 @@ def main() -> None:
         "note": "the default cuts a path longer than 1.5 x mesh.segment_m (150 m) into segments; shorter drives are "
                 "one piece (the short-drive reference)",
         "rows": rows, "s_per_frame_ratio_max_min": round(max(spf) / min(spf), 3) if spf else None,
+        "history": history,
         "load_avg_end": os.getloadavg(), "commit": commit.strip(), **machine_entry()})
 
 

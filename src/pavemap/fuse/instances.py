@@ -56,22 +56,37 @@ def component_polygons(labels: np.ndarray, k: int, x0: float, y0: float, res: fl
     return polys
 
 
+def principal_axes(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per component 0..k: centre (k + 1, 2) and principal axis (k + 1, 2) unit vector of its vertices at x, y
+    (N,) labelled ``labels_flat`` (N,); per vertex its offsets (N,) along and across its component's axis."""
+    cnt = np.maximum(np.bincount(labels_flat, minlength=k + 1), 1).astype(np.float64)
+    mx, my = np.bincount(labels_flat, x, k + 1) / cnt, np.bincount(labels_flat, y, k + 1) / cnt
+    dx, dy = x - mx[labels_flat], y - my[labels_flat]
+    sxx, syy = np.bincount(labels_flat, dx * dx, k + 1), np.bincount(labels_flat, dy * dy, k + 1)
+    theta = 0.5 * np.arctan2(2 * np.bincount(labels_flat, dx * dy, k + 1), sxx - syy)  # of the 2x2 covariance
+    u = np.stack([np.cos(theta), np.sin(theta)], 1)
+    ul = u[labels_flat]
+    return np.stack([mx, my], 1), u, dx * ul[:, 0] + dy * ul[:, 1], dy * ul[:, 0] - dx * ul[:, 1]
+
+
+def _spans(labels_flat: np.ndarray, t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per component 0..k the lowest and highest of the vertex offsets ``t`` (N,) (0 for the background)."""
+    lo, hi = np.full(k + 1, np.inf), np.full(k + 1, -np.inf)
+    np.minimum.at(lo, labels_flat, t)
+    np.maximum.at(hi, labels_flat, t)
+    lo[0] = hi[0] = 0.0
+    return lo, hi
+
+
+def _across(u: np.ndarray, d: np.ndarray) -> float:
+    """Signed offset of the vector ``d`` (2,) across the unit axis ``u`` (2,)."""
+    return float(u[0] * d[1] - u[1] * d[0])
+
+
 def principal_extent(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: int, res: float) -> np.ndarray:
     """Extent (k,) in metres of each component along its principal axis (vertex spread + one cell)."""
-    cnt = np.bincount(labels_flat, minlength=k + 1).astype(np.float64)
-    safe = np.maximum(cnt, 1)
-    mx = np.bincount(labels_flat, x, k + 1) / safe
-    my = np.bincount(labels_flat, y, k + 1) / safe
-    dx, dy = x - mx[labels_flat], y - my[labels_flat]
-    sxx = np.bincount(labels_flat, dx * dx, k + 1)
-    syy = np.bincount(labels_flat, dy * dy, k + 1)
-    sxy = np.bincount(labels_flat, dx * dy, k + 1)
-    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # principal axis angle of the 2x2 covariance
-    t = dx * np.cos(theta)[labels_flat] + dy * np.sin(theta)[labels_flat]
-    hi = np.full(k + 1, -np.inf)
-    lo = np.full(k + 1, np.inf)
-    np.maximum.at(hi, labels_flat, t)
-    np.minimum.at(lo, labels_flat, t)
+    lo, hi = _spans(labels_flat, principal_axes(labels_flat, x, y, k)[2], k)
     return (hi - lo + res)[1:]
 
 
@@ -82,7 +97,7 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
     (k,) (the component's majority class, among ``crack_classes``), an end of one within ``gap_m`` of an end
     of the other, the centre of each within ``lateral_m`` of the other's principal axis where that one is
     elongated (longer than twice its width), and axes within ``max_deg`` where both are. Returns the new labels
-    (ids 1..K' in order of first id) and K'.
+    (ids 1..K') and K'.
 
     Why: a longitudinal or transverse crack is a line, and where a stretch of it is faint in every view its
     fused vertices fall apart into pieces 0.4-0.9 m apart along the line (8 of ~700 true cracks on the
@@ -97,18 +112,8 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
     L = flat[sel]
     y, x = np.divmod(sel, labels.shape[1])
     x, y = x * res, y * res
-    cnt = np.maximum(np.bincount(L, minlength=k + 1), 1).astype(np.float64)
-    cx, cy = np.bincount(L, x, k + 1) / cnt, np.bincount(L, y, k + 1) / cnt
-    dx, dy = x - cx[L], y - cy[L]
-    theta = 0.5 * np.arctan2(2 * np.bincount(L, dx * dy, k + 1), np.bincount(L, dx * dx, k + 1)
-                             - np.bincount(L, dy * dy, k + 1))
-    u = np.stack([np.cos(theta), np.sin(theta)], 1)  # (k + 1, 2) principal axis per component
-    along, across = dx * u[L, 0] + dy * u[L, 1], -dx * u[L, 1] + dy * u[L, 0]
-    lo, hi, w_lo, w_hi = (np.full(k + 1, v) for v in (np.inf, -np.inf, np.inf, -np.inf))
-    np.minimum.at(lo, L, along), np.maximum.at(hi, L, along)
-    np.minimum.at(w_lo, L, across), np.maximum.at(w_hi, L, across)
-    lo[0] = hi[0] = w_lo[0] = w_hi[0] = 0.0  # the background
-    c = np.stack([cx, cy], 1)
+    c, u, along, across = principal_axes(L, x, y, k)
+    (lo, hi), (w_lo, w_hi) = _spans(L, along, k), _spans(L, across, k)
     ends = np.concatenate([c + lo[:, None] * u, c + hi[:, None] * u])  # (2 (k + 1), 2)
     elongated = (hi - lo + res) > 2 * (w_hi - w_lo + res)
     crack = np.isin(cls, crack_classes)
@@ -126,7 +131,7 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
             continue
         if not (elongated[a] or elongated[b]):
             continue
-        ok = all(abs(float(np.cross(u[p], c[q] - c[p]))) <= lateral_m for p, q in ((a, b), (b, a)) if elongated[p])
+        ok = all(abs(_across(u[p], c[q] - c[p])) <= lateral_m for p, q in ((a, b), (b, a)) if elongated[p])
         if ok and elongated[a] and elongated[b]:
             ok = abs(float(u[a] @ u[b])) >= np.cos(np.radians(max_deg))
         if ok:

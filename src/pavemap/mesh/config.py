@@ -158,7 +158,7 @@ class MeshConfig:
     segment_revisit_m: float = 10.0
     # ... one of them every this many metres along its pass (0: all): the own pass already sees the road every
     # metre, and every revisit view costs stage 1 as much as an own one (see the README's long-drive bench).
-    segment_revisit_spacing_m: float = 3.0
+    segment_revisit_spacing_m: float = 1.5
     # A standing vehicle: frames within this distance (m) of the last frame kept add nothing but memory.
     segment_min_step_m: float = 0.1
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
