@@ -343,3 +343,9 @@ def test_pieces_of_one_crack_join_but_neighbouring_defects_do_not() -> None:
     assert joined.length_m == pytest.approx(5.5, abs=0.15)  # end to end across the gap
     assert len(_crack_instances(line + beside, 0.0)) == 3
     assert len(_crack_instances(line, 0.5)) == 2  # the gap is wider than the join distance
+    # the pieces of a faint crack are blobs (the 0.3 m disks around its detections): neither is longer than it
+    # is wide, together they are a line
+    blobs = [(slice(40, 49), slice(10, 22), 0), (slice(42, 48), slice(27, 31), 0)]  # 1.2 x 0.9 m, 0.4 x 0.6 m
+    assert sorted(round(i.area_m2, 2) for i in _crack_instances(blobs, 1.0)) == [1.32]
+    # a blob 0.5 m beside the middle of a crack is not a piece of it
+    assert len(_crack_instances([line[0], (slice(17, 22), slice(18, 23), 0)], 1.0)) == 2

@@ -79,11 +79,6 @@ def _spans(labels_flat: np.ndarray, t: np.ndarray, k: int) -> tuple[np.ndarray, 
     return lo, hi
 
 
-def _across(u: np.ndarray, d: np.ndarray) -> float:
-    """Signed offset of the vector ``d`` (2,) across the unit axis ``u`` (2,)."""
-    return float(u[0] * d[1] - u[1] * d[0])
-
-
 def principal_extent(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: int, res: float) -> np.ndarray:
     """Extent (k,) in metres of each component along its principal axis (vertex spread + one cell)."""
     lo, hi = _spans(labels_flat, principal_axes(labels_flat, x, y, k)[2], k)
@@ -91,13 +86,14 @@ def principal_extent(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: i
 
 
 def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, gap_m: float,
-                      max_deg: float = 15.0, lateral_m: float = 0.3, crack_classes: tuple[int, ...] = (0, 1)
+                      max_deg: float = 20.0, min_ratio: float = 2.0, crack_classes: tuple[int, ...] = (0, 1)
                       ) -> tuple[np.ndarray, int]:
-    """Components 1..k of ``labels`` (ny, nx) int32 that are pieces of one crack joined: same class ``cls``
-    (k,) (the component's majority class, among ``crack_classes``), an end of one within ``gap_m`` of an end
-    of the other, the centre of each within ``lateral_m`` of the other's principal axis where that one is
-    elongated (longer than twice its width), and axes within ``max_deg`` where both are. Returns the new labels
-    (ids 1..K') and K'.
+    """Components 1..k of ``labels`` (ny, nx) int32 that are pieces of one crack, joined. Two pieces join when
+    they have the same class ``cls`` (k,) (majority class) among ``crack_classes``, come within ``gap_m`` of
+    each other, are together a line (their union's principal extent at least ``min_ratio`` times its width, from
+    its second moments) and lie along it (the line between their centres within ``max_deg`` of its axis, not
+    side by side), and neither piece is a line of its own across that axis. Pieces too short to have a direction
+    of their own join whenever together they form a line. Returns the new labels (ids 1..K') and K'.
 
     Why: a longitudinal or transverse crack is a line, and where a stretch of it is faint in every view its
     fused vertices fall apart into pieces 0.4-0.9 m apart along the line (8 of ~700 true cracks on the
@@ -110,14 +106,21 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
     flat = labels.reshape(-1)
     sel = np.flatnonzero(flat)
     L = flat[sel]
-    y, x = np.divmod(sel, labels.shape[1])
-    x, y = x * res, y * res
-    c, u, along, across = principal_axes(L, x, y, k)
-    (lo, hi), (w_lo, w_hi) = _spans(L, along, k), _spans(L, across, k)
-    ends = np.concatenate([c + lo[:, None] * u, c + hi[:, None] * u])  # (2 (k + 1), 2)
-    elongated = (hi - lo + res) > 2 * (w_hi - w_lo + res)
-    crack = np.isin(cls, crack_classes)
+    order = np.argsort(L, kind="stable")
+    y, x = np.divmod(sel[order], labels.shape[1])
+    pts, L = np.stack([x, y], 1) * res, L[order]
+    start = np.searchsorted(L, np.arange(k + 2))  # component c's vertices: pts[start[c]:start[c + 1]]
+    n = np.diff(start).astype(np.float64)  # (k + 1,), index 0 the background (no vertices)
+    m1 = np.stack([np.bincount(L, pts[:, i], k + 1) for i in range(2)], 1)
+    m2 = np.stack([np.bincount(L, pts[:, i] * pts[:, j], k + 1) for i, j in ((0, 0), (1, 1), (0, 1))], 1)
+    centre = m1 / np.maximum(n, 1)[:, None]
+    reach = np.zeros(k + 1)
+    np.maximum.at(reach, L, np.linalg.norm(pts - centre[L], axis=1))
+    crack = np.concatenate([[False], np.isin(cls, crack_classes)])
+    ids = np.flatnonzero(crack)
     parent = np.arange(k + 1)
+    trees: dict[int, cKDTree] = {}
+    cos_max = float(np.cos(np.radians(max_deg)))
 
     def root(a: int) -> int:
         while parent[a] != a:
@@ -125,21 +128,43 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
             a = parent[a]
         return a
 
-    for e1, e2 in cKDTree(ends).query_pairs(gap_m + res, output_type="ndarray"):
-        a, b = e1 % (k + 1), e2 % (k + 1)
-        if a == b or 0 in (a, b) or cls[a - 1] != cls[b - 1] or not crack[a - 1]:
+    def near(a: int, b: int) -> bool:
+        if a not in trees:
+            trees[a] = cKDTree(pts[start[a]:start[a + 1]])
+        d, _ = trees[a].query(pts[start[b]:start[b + 1]], distance_upper_bound=gap_m + 1e-9)
+        return bool(np.isfinite(d).any())
+
+    if len(ids) < 2:
+        return labels, k
+    for i, j in cKDTree(centre[ids]).query_pairs(2 * float(reach[ids].max()) + gap_m, output_type="ndarray"):
+        a, b = int(ids[i]), int(ids[j])
+        if cls[a - 1] != cls[b - 1] or np.linalg.norm(centre[a] - centre[b]) > reach[a] + reach[b] + gap_m:
             continue
-        if not (elongated[a] or elongated[b]):
+        u, ratio = _union_axis(n[[a, b]], m1[[a, b]], m2[[a, b]], res)
+        d = centre[b] - centre[a]
+        if ratio < min_ratio ** 2 or abs(float(d @ u)) < cos_max * float(np.linalg.norm(d)):
             continue
-        ok = all(abs(_across(u[p], c[q] - c[p])) <= lateral_m for p, q in ((a, b), (b, a)) if elongated[p])
-        if ok and elongated[a] and elongated[b]:
-            ok = abs(float(u[a] @ u[b])) >= np.cos(np.radians(max_deg))
-        if ok:
+        if any(r >= min_ratio ** 2 and abs(float(v @ u)) < cos_max for v, r in
+               (_union_axis(n[[c]], m1[[c]], m2[[c]], res) for c in (a, b))):
+            continue  # a piece that is a line of its own runs across the pair's line: side by side
+        if root(a) != root(b) and near(a, b):
             parent[root(a)] = root(b)
     roots = np.array([root(a) for a in range(k + 1)])
-    ids, dense = np.unique(roots[1:], return_inverse=True)
+    _, dense = np.unique(roots[1:], return_inverse=True)
     lut = np.concatenate([[0], dense + 1]).astype(np.int32)
-    return lut[labels], int(len(ids))
+    return lut[labels], int(dense.max()) + 1
+
+
+def _union_axis(n: np.ndarray, m1: np.ndarray, m2: np.ndarray, res: float) -> tuple[np.ndarray, float]:
+    """Principal axis (2,) of the union of pieces with vertex counts n (P,), coordinate sums m1 (P, 2) and
+    second-moment sums m2 (P, 3: xx, yy, xy), and the ratio of its variances along and across it (the
+    across-variance at least that of one cell, res^2 / 12)."""
+    tot = float(n.sum())
+    mx, my = m1.sum(0) / tot
+    sxx, syy, sxy = m2.sum(0) / tot - np.array([mx * mx, my * my, mx * my])
+    half, mid = np.hypot(0.5 * (sxx - syy), sxy), 0.5 * (sxx + syy)
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)
+    return np.array([np.cos(theta), np.sin(theta)]), float((mid + half) / max(mid - half, res * res / 12))
 
 
 def build_instances(
