@@ -1,0 +1,80 @@
+"""Fusion's crack join (``fusion.crack_join_m``) on a finished long drive: the same mesh and detections fused
+with the join off and on, scored against the truth (F1, split defects at the seams and anywhere).
+
+Stages 2-3 only (``pavemap fuse``), so the comparison holds the surface fixed. Writes
+``bench/results/crack_join.json``.
+
+    python bench/crack_join_bench.py [--run /tmp/pavemap-bench/scale-run-4541-default]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from common import machine_entry, write_results  # noqa: E402
+from scale_bench import PAVEMAP, per_segment  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "bench" / "results" / "crack_join.json"
+
+
+def fuse(seq: Path, run: Path, out: Path, join_m: float) -> float:
+    t = time.perf_counter()
+    subprocess.run([PAVEMAP, "fuse", str(seq), "--mesh", str(run / "mesh"), "--detections",
+                    str(run / "detections.jsonl"), "-o", str(out), "--config", "kitti", "--set", "device=cpu",
+                    "--set", f"fusion.crack_join_m={join_m}"], check=True, capture_output=True)
+    return time.perf_counter() - t
+
+
+def score(seq: Path, out: Path, mesh_m: dict) -> dict:
+    from pavemap.evaluate.gt import (
+        _read_instances,
+        _read_jsonl,
+        _truth_lines,
+        load_truth,
+        score_instances,
+        visible_defects,
+    )
+    from pavemap.export.gis import run_defects_path
+
+    _, split = per_segment(seq, out, mesh_m)
+    preds = _read_instances(*run_defects_path(out, "defects"))
+    records = _read_jsonl(out / "detections_mapped.jsonl")
+    lines, _ = _truth_lines(seq, out, len(records))
+    sc = score_instances(preds, load_truth(seq), visible_defects(records, lines))
+    return {"instances": len(preds), **{k: round(float(sc[k]), 4) for k in ("f1", "precision", "recall",
+                                                                            "median_error_m")},
+            "split_defects": split}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    data = Path(os.environ.get("PAVEMAP_BENCH_DATA", "/tmp/pavemap-bench"))
+    ap.add_argument("--run", type=Path, default=data / "scale-run-4541-default")
+    ap.add_argument("--seq", type=Path, default=data / "scale-k00-4541-s0.5")
+    ap.add_argument("--join", type=float, nargs="+", default=[0.0, 1.0])
+    args = ap.parse_args()
+    metrics = json.loads((args.run / "metrics.json").read_text())
+    rows = []
+    for j in args.join:
+        out = args.run.parent / f"{args.run.name}-fuse-join{j:g}"
+        s = fuse(args.seq, args.run, out, j)
+        rows.append({"crack_join_m": j, "fuse_s": round(s, 1), **score(args.seq, out, metrics["mesh"])})
+        print(json.dumps(rows[-1]), flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    write_results(OUT, {"benchmark": "fusion.crack_join_m on a finished drive (stages 2-3 only)",
+                        "run": str(args.run), "frames": len(json.loads((args.seq / "sequence.json").read_text())
+                                                             .get("frames", [])),
+                        "rows": rows, "commit": commit.strip(), **machine_entry()})
+
+
+if __name__ == "__main__":
+    main()
