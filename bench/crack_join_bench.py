@@ -20,7 +20,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 
 from common import machine_entry, write_results  # noqa: E402
-from scale_bench import PAVEMAP, per_segment  # noqa: E402
+from scale_bench import PAVEMAP, per_segment, scored_run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "crack_join.json"
@@ -35,21 +35,11 @@ def fuse(seq: Path, run: Path, out: Path, join_m: float) -> float:
 
 
 def score(seq: Path, out: Path, mesh_m: dict) -> dict:
-    from pavemap.evaluate.gt import (
-        _read_instances,
-        _read_jsonl,
-        _truth_lines,
-        load_truth,
-        score_instances,
-        visible_defects,
-    )
-    from pavemap.export.gis import run_defects_path
+    from pavemap.evaluate.gt import score_instances
 
     _, split = per_segment(seq, out, mesh_m)
-    preds = _read_instances(*run_defects_path(out, "defects"))
-    records = _read_jsonl(out / "detections_mapped.jsonl")
-    lines, _ = _truth_lines(seq, out, len(records))
-    sc = score_instances(preds, load_truth(seq), visible_defects(records, lines))
+    truth, preds, visible = scored_run(seq, out)
+    sc = score_instances(preds, truth, visible)
     return {"instances": len(preds), **{k: round(float(sc[k]), 4) for k in ("f1", "precision", "recall",
                                                                             "median_error_m")},
             "split_defects": split}

@@ -61,28 +61,28 @@ def run(seq: Path, out: Path, sets: list[str]) -> dict:
             "wall_s": round(wall, 1)}
 
 
+def scored_run(seq: Path, out: Path) -> tuple[list[dict], list[dict], set | None]:
+    """The truth defects of ``seq``, the instances of the run folder ``out`` and the ids of the true defects its
+    detector saw (None without the truth's detection lines)."""
+    from pavemap.evaluate.gt import _read_instances, _read_jsonl, _truth_lines, load_truth, visible_defects
+    from pavemap.export.gis import run_defects_path
+
+    records = _read_jsonl(out / "detections_mapped.jsonl")
+    lines, _ = _truth_lines(seq, out, len(records))
+    return (load_truth(seq), _read_instances(*run_defects_path(out, "defects")),
+            visible_defects(records, lines) if lines is not None else None)
+
+
 def per_segment(seq: Path, out: Path, mesh_m: dict) -> tuple[list[dict], dict]:
     """F1 per segment (truth and instances by the path coordinate of their centroid) and the splits: visible
     true defects that two or more instances of their class cover, at the seams and anywhere."""
-    from pavemap.evaluate.gt import (
-        _read_instances,
-        _read_jsonl,
-        _truth_lines,
-        load_truth,
-        score_instances,
-        visible_defects,
-    )
-    from pavemap.export.gis import run_defects_path
+    from pavemap.evaluate.gt import score_instances
     from pavemap.io.sequence import read_sequence
     from pavemap.mesh.segments import path_metres
 
     traj = read_sequence(seq).trajectory()[:, :2]
     s = path_metres(traj)
-    truth = load_truth(seq)
-    preds = _read_instances(*run_defects_path(out, "defects"))
-    records = _read_jsonl(out / "detections_mapped.jsonl")
-    lines, _ = _truth_lines(seq, out, len(records))
-    visible = visible_defects(records, lines) if lines is not None else None
+    truth, preds, visible = scored_run(seq, out)
 
     def along(xy: np.ndarray) -> np.ndarray:
         from scipy.spatial import cKDTree
