@@ -56,32 +56,22 @@ def component_polygons(labels: np.ndarray, k: int, x0: float, y0: float, res: fl
     return polys
 
 
-def principal_axes(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: int
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per component 0..k: centre (k + 1, 2) and principal axis (k + 1, 2) unit vector of its vertices at x, y
-    (N,) labelled ``labels_flat`` (N,); per vertex its offsets (N,) along and across its component's axis."""
-    cnt = np.maximum(np.bincount(labels_flat, minlength=k + 1), 1).astype(np.float64)
-    mx, my = np.bincount(labels_flat, x, k + 1) / cnt, np.bincount(labels_flat, y, k + 1) / cnt
-    dx, dy = x - mx[labels_flat], y - my[labels_flat]
-    sxx, syy = np.bincount(labels_flat, dx * dx, k + 1), np.bincount(labels_flat, dy * dy, k + 1)
-    theta = 0.5 * np.arctan2(2 * np.bincount(labels_flat, dx * dy, k + 1), sxx - syy)  # of the 2x2 covariance
-    u = np.stack([np.cos(theta), np.sin(theta)], 1)
-    ul = u[labels_flat]
-    return np.stack([mx, my], 1), u, dx * ul[:, 0] + dy * ul[:, 1], dy * ul[:, 0] - dx * ul[:, 1]
-
-
-def _spans(labels_flat: np.ndarray, t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per component 0..k the lowest and highest of the vertex offsets ``t`` (N,) (0 for the background)."""
-    lo, hi = np.full(k + 1, np.inf), np.full(k + 1, -np.inf)
-    np.minimum.at(lo, labels_flat, t)
-    np.maximum.at(hi, labels_flat, t)
-    lo[0] = hi[0] = 0.0
-    return lo, hi
-
-
 def principal_extent(labels_flat: np.ndarray, x: np.ndarray, y: np.ndarray, k: int, res: float) -> np.ndarray:
     """Extent (k,) in metres of each component along its principal axis (vertex spread + one cell)."""
-    lo, hi = _spans(labels_flat, principal_axes(labels_flat, x, y, k)[2], k)
+    cnt = np.bincount(labels_flat, minlength=k + 1).astype(np.float64)
+    safe = np.maximum(cnt, 1)
+    mx = np.bincount(labels_flat, x, k + 1) / safe
+    my = np.bincount(labels_flat, y, k + 1) / safe
+    dx, dy = x - mx[labels_flat], y - my[labels_flat]
+    sxx = np.bincount(labels_flat, dx * dx, k + 1)
+    syy = np.bincount(labels_flat, dy * dy, k + 1)
+    sxy = np.bincount(labels_flat, dx * dy, k + 1)
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # principal axis angle of the 2x2 covariance
+    t = dx * np.cos(theta)[labels_flat] + dy * np.sin(theta)[labels_flat]
+    hi = np.full(k + 1, -np.inf)
+    lo = np.full(k + 1, np.inf)
+    np.maximum.at(hi, labels_flat, t)
+    np.minimum.at(lo, labels_flat, t)
     return (hi - lo + res)[1:]
 
 
