@@ -178,3 +178,43 @@ def test_range_mask_is_the_per_pixel_ray_test():
         assert np.array_equal(got, want), int((got != want).sum())
         seen += int(want.sum())
     assert 0 < seen < 4 * 64 * 40
+
+
+def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
+    """The numba NCC kernel (pavemap.geometry.patch_ncc) scores every hypothesis of a real view pair like the
+    numpy reference (float64 and exact bilinear weights against float32 and cv2's 1/32 px positions), and the
+    ground points found with either are the same points."""
+    import cv2
+
+    from pavemap.geometry import patch_ncc
+    from pavemap.mesh.ground_points import _load, _Sweep, _ViewData
+
+    if not patch_ncc.available():
+        pytest.skip("numba missing: the reference runs")
+    seq = drive[0]
+    cfg = GroundConfig()
+    luts = (seq.class_lut("ground") & ~seq.class_lut("movable"), seq.class_lut("road"))
+    vds = []
+    for pos in (0, 1):
+        v = seq.frames[pos].views["CAM_FRONT"]
+        vd = _ViewData((seq.frames[pos].index, "CAM_FRONT"), pos, seq.cameras["CAM_FRONT"], v.T_world_cam)
+        _load(seq, vd, v, cfg, *luts)
+        vds.append(vd)
+    corners = cv2.goodFeaturesToTrack(vds[0].grey, 200, cfg.quality, cfg.min_distance,
+                                      mask=vds[0].mask.astype(np.uint8)).reshape(-1, 2).astype(np.float64)
+    sw = _Sweep(vds[0], vds[1], corners, cfg)
+    rows = np.arange(len(corners))
+    tau = np.broadcast_to(np.linspace(-cfg.sweep_range, cfg.sweep_range, 60), (len(rows), 60))
+    for sparse in (True, False):
+        got, want = sw.score(tau, rows, sparse), sw.score_reference(tau, rows, sparse)
+        both = (got > -1) & (want > -1)
+        assert both.mean() > 0.5 and ((got > -1) == (want > -1)).mean() > 0.999
+        assert np.abs(got - want)[both].max() < 0.02, np.abs(got - want)[both].max()
+        peaked = want.max(1) >= cfg.min_ncc  # where the reference has a match, both put it at the same place
+        assert peaked.sum() > 20
+        assert (np.abs(got.argmax(1) - want.argmax(1))[peaked] <= 1).mean() > 0.97
+    a = find_ground_points(seq)
+    monkeypatch.setenv("PAVEMAP_NCC", "numpy")
+    b = find_ground_points(seq)
+    assert abs(len(a) - len(b)) <= 0.03 * len(b)
+    assert abs(np.median(a.points[:, 2]) - np.median(b.points[:, 2])) < 0.002

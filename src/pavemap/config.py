@@ -5,7 +5,7 @@ A config file is YAML with optional sections ``mesh``, ``detector``, ``filter``,
 
     preset: nuscenes        # start from a preset, then override
     device: auto
-    mesh:      {epochs: 7, resolution: 0.1}
+    mesh:      {epochs: 2, resolution: 0.1}
     detector:  {backend: auto, seed: 0}
     filter:    {tau_conf: 0.05, tau_road: 0.5, mask: frame}
     fusion:    {association: hit}

@@ -55,17 +55,19 @@ def pool_hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: 
 
 class Hits(NamedTuple):
     """The pool pixels that hit the surface, cached for repeated passes: flat vertex ids (M, 3), barycentric
-    weights (M, 3) float32, colours (M, 3) uint8 and their views (M,) long (one batch of a march)."""
+    weights (M, 3) float32, colours (M, 3) uint8, their views (M,) long and semantic channels (M,) long
+    (-1 unknown) (one batch of a march)."""
 
     vid: torch.Tensor
     w: torch.Tensor
     c8: torch.Tensor
     view: torch.Tensor
+    channel: torch.Tensor
 
 
 def batch_hits(pool: PixelPool, sl: slice, rows: torch.Tensor, vid: torch.Tensor, w: torch.Tensor) -> Hits:
     """One :func:`pool_hits` batch as the bake keeps it."""
-    return Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows])
+    return Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows], pool.channel[sl][rows])
 
 
 def march_pool(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float,
@@ -84,6 +86,29 @@ def _mean_colours(hits: list[Hits], n: int, exposure: torch.Tensor | None, devic
         acc.index_add_(0, h.vid.reshape(-1), (vals[:, None, :] * h.w.double()[..., None]).reshape(-1, 4))
     support = acc[:, 3]
     return acc[:, :3] / support.clamp_min(1e-12)[:, None], support
+
+
+def bake_semantics(hits: list[Hits], n: int, n_classes: int, prior: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n, C) float32 closed-form semantic logits of the grid vertices and (n,) bool: the vertices a labelled
+    pixel reaches.
+
+    With the surface fixed, per-vertex logits that minimise the pixels' cross-entropy, each pixel voting for
+    the vertices of its triangle with its barycentric weight, are the log class frequencies of those votes;
+    ``prior`` (a vote per class) keeps a vertex seen by one pixel from certainty. Why: Adam at the SPEC's
+    rate needs epochs to move logits from zero (semantic accuracy after 1 epoch 0.956, after 7 0.965,
+    nuScenes-like), and the off-road filter of stage 2 reads these labels."""
+    dev = hits[0].vid.device if hits else torch.device("cpu")
+    votes = torch.zeros(n, n_classes, dtype=torch.float64, device=dev)
+    for h in hits:
+        lab = h.channel >= 0
+        if not bool(lab.any()):
+            continue
+        vid, w = h.vid[lab], h.w[lab].double()
+        flat = (vid * n_classes + h.channel[lab, None]).reshape(-1)
+        votes.view(-1).index_add_(0, flat, w.reshape(-1))
+    total = votes.sum(1)
+    logits = torch.log((votes + prior) / (total[:, None] + prior * n_classes))
+    return logits.float(), total > 0
 
 
 def _fit_exposure(hits: list[Hits], rgb: torch.Tensor, n_views: int) -> torch.Tensor:
@@ -191,16 +216,23 @@ def static_pixels(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_di
 @torch.no_grad()
 def bake_into(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, fill: float, max_dist: float,
               fill_sigma: float = 1.0, sharpen_iters: int = 0, exposure_rounds: int = 0,
-              hits: list[Hits] | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+              hits: list[Hits] | None = None, semantics: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Replace the model's vertex colours by the baked ones on its current surface (where any pixel reaches
     them, directly or through the gap fill), seen from poses T (V, 4, 4); ``fill`` is the height off the crop.
     Returns (Nv,) bool: the vertices some training pixel sees, and the views' exposure (V, 2) or None
     (``exposure_rounds``: :func:`bake_exposed`). ``hits``: the march of ``pool`` from T on the current surface
-    when one was made already (:func:`pavemap.mesh.setup.visible_pixels`)."""
-    rgb, support, coloured, exposure = bake_exposed(model.field(model.dense_heights(fill)), pool, T, max_dist,
-                                                    fill_sigma, sharpen_iters=sharpen_iters,
+    when one was made already (:func:`pavemap.mesh.setup.visible_pixels`). ``semantics``: the vertices' semantic
+    logits are baked too (:func:`bake_semantics`) where a labelled pixel reaches them."""
+    field = model.field(model.dense_heights(fill))
+    if hits is None:
+        hits = march_pool(field, pool, T, max_dist)
+    rgb, support, coloured, exposure = bake_exposed(field, pool, T, max_dist, fill_sigma, sharpen_iters=sharpen_iters,
                                                     exposure_rounds=exposure_rounds, hits=hits)
     flat = model.vertex_flat_ids
     ok = coloured.reshape(-1)[flat]
     model.rgb.data[ok] = rgb.reshape(-1, 3)[flat][ok].to(model.rgb.dtype)
+    if semantics and model.sem.shape[1]:
+        logits, labelled = bake_semantics(hits, rgb.shape[0] * rgb.shape[1], model.sem.shape[1])
+        got = labelled[flat]
+        model.sem.data[got] = logits[flat][got].to(model.sem.dtype)
     return support.reshape(-1)[flat] > 0, exposure

@@ -15,12 +15,14 @@ sparse depth, self-check) is :mod:`pavemap.mesh.geometry`.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
+from pavemap.geometry import patch_ncc
 from pavemap.geometry.triangulate import (
     HeightEstimate,
     agrees_with_neighbours,
@@ -223,7 +225,17 @@ class _Sweep:
         return uvw[:, :2] / uvw[:, 2:3]
 
     def score(self, tau: np.ndarray, rows: np.ndarray, sparse: bool) -> np.ndarray:
-        """NCC (R, S) of hypotheses tau (R, S) of corners ``rows``; -1 where the patch leaves b."""
+        """NCC (R, S) of hypotheses tau (R, S) of corners ``rows``; -1 where the patch leaves b. Compiled
+        (:mod:`pavemap.geometry.patch_ncc`) on a machine with numba unless ``PAVEMAP_NCC=numpy``."""
+        if patch_ncc.available() and os.environ.get("PAVEMAP_NCC", "").lower() != "numpy":
+            pix = self.sparse if sparse else slice(None)
+            ref = self.ref_sparse if sparse else self.ref
+            return patch_ncc.sweep_scores(self.lam0[rows, None] * np.exp(tau), self.ratio[rows][:, pix],
+                                          self.KU[rows][:, pix], self.kt, self.img, ref[rows])
+        return self.score_reference(tau, rows, sparse)
+
+    def score_reference(self, tau: np.ndarray, rows: np.ndarray, sparse: bool) -> np.ndarray:
+        """:meth:`score` in numpy (the reference of the compiled kernel)."""
         pix = self.sparse if sparse else slice(None)
         mu = (self.lam0[rows, None] * np.exp(tau)).astype(np.float32)[:, :, None] * self.ratio[rows][:, None, pix]
         KU = self.KU[rows][:, pix]

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import solveh_banded
+from scipy.linalg import cho_solve_banded, cholesky_banded, solveh_banded
 from scipy.sparse.linalg import spsolve
 
 
@@ -102,30 +102,61 @@ def fit_relief(s_pts: np.ndarray, t_pts: np.ndarray, r: np.ndarray, s_q: np.ndar
     return _bilinear(s_q, t_q, s0, t0, fit, ns, nt) @ values
 
 
-def _solve_spd(M: sp.csr_matrix, b: np.ndarray, ns: int, nt: int) -> np.ndarray:
+def _solve_spd(M: sp.csr_matrix, b: np.ndarray, ns: int, nt: int, tol: float = 1e-10, max_refine: int = 10
+               ) -> np.ndarray:
     """(ns * nt,) solution of the normal equations M x = b (M symmetric positive definite, on the ns x nt
     lattice) by a banded Cholesky, the lattice numbered along its shorter axis first (bandwidth 2 x that
     axis's nodes: second differences reach two nodes); the general sparse solve if M is not numerically SPD.
 
-    Why: SuperLU treats M as unsymmetric and its fill grows with the lattice's width. Measured on one core
-    (results equal to 1e-13 m): lattices of 92 / 202 / 402 x 322 nodes 0.86 / 2.65 / 7.4 s -> 0.24 / 0.86 /
+    Why banded: SuperLU treats M as unsymmetric and its fill grows with the lattice's width. Measured on one
+    core (results equal to 1e-13 m): lattices of 92 / 202 / 402 x 322 nodes 0.86 / 2.65 / 7.4 s -> 0.24 / 0.86 /
     4.4 s at the same peak memory. Conjugate gradients preconditioned by the lattice lines lost on the
-    data-free margins (~600-800 iterations)."""
+    data-free margins (~600-800 iterations), and so did algebraic multigrid (pyamg: 230-310 iterations, 2-3x
+    slower than the banded solve).
+
+    The factor is computed in float32 and the solution refined in float64 until the residual is ``tol`` of
+    ``|b|`` (mixed-precision iterative refinement; a float32 solve alone is off by up to 1 cm): half the
+    factor's memory and time (README, stage 1); the float64 factor where float32 is not SPD or the
+    refinement stalls."""
     n = ns * nt
     order = np.arange(n).reshape(ns, nt)
     order = (order.T if ns < nt else order).ravel()  # position in the band -> lattice index
-    C = M[order][:, order].tocoo()
-    upper = C.col >= C.row
-    bw = int((C.col - C.row)[upper].max(initial=0))
-    ab = np.zeros((bw + 1, n))
-    ab[bw + C.row[upper] - C.col[upper], C.col[upper]] = C.data[upper]
-    try:
-        x = solveh_banded(ab, b[order], overwrite_ab=True, check_finite=False)
-    except np.linalg.LinAlgError:
-        return spsolve(M.tocsc(), b)
+    C = M[order][:, order].tocsr()
+    coo = C.tocoo()
+    upper = coo.col >= coo.row
+    bw = int((coo.col - coo.row)[upper].max(initial=0))
+    bo = b[order]
+    x = _refined(C, coo, upper, bw, bo, tol, max_refine)
+    if x is None:
+        ab = np.zeros((bw + 1, n))
+        ab[bw + coo.row[upper] - coo.col[upper], coo.col[upper]] = coo.data[upper]
+        try:
+            x = solveh_banded(ab, bo, overwrite_ab=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            return spsolve(M.tocsc(), b)
     out = np.empty(n)
     out[order] = x
     return out
+
+
+def _refined(C: sp.csr_matrix, coo: sp.coo_matrix, upper: np.ndarray, bw: int, b: np.ndarray, tol: float,
+             max_refine: int) -> np.ndarray | None:
+    """Solution of C x = b from C's float32 banded Cholesky factor and float64 residuals; None if the factor
+    fails or the residual does not reach ``tol`` of ``|b|``."""
+    ab = np.zeros((bw + 1, C.shape[0]), np.float32)
+    ab[bw + coo.row[upper] - coo.col[upper], coo.col[upper]] = coo.data[upper]
+    try:
+        factor = (cholesky_banded(ab, overwrite_ab=True, check_finite=False), False)
+    except np.linalg.LinAlgError:
+        return None
+    x = np.zeros_like(b)
+    r, goal = b, tol * max(float(np.linalg.norm(b)), 1e-300)
+    for _ in range(max_refine):
+        x += cho_solve_banded(factor, r.astype(np.float32), check_finite=False)
+        r = b - C @ x
+        if float(np.linalg.norm(r)) <= goal:
+            return x
+    return None
 
 
 def _gram(D: sp.csr_matrix) -> sp.csr_matrix:

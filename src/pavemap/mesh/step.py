@@ -123,11 +123,12 @@ class NonFiniteStepError(Exception):
 @dataclass
 class Fit:
     """What an optimisation step works on: the model, its optimizer and all their parameters, the pose
-    corrections (None without pose refinement), the training pixels, the config, and which losses apply."""
+    corrections (None without pose refinement), the training pixels, the config, and which losses apply.
+    ``opt`` is None in a run without training epochs."""
 
     cfg: MeshConfig
     model: RoadMeshModel
-    opt: MultiOptimizer
+    opt: MultiOptimizer | None
     params: list[torch.Tensor]
     poses: PoseCorrections | None
     pool: PixelPool

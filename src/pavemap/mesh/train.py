@@ -120,7 +120,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     run = _Run(data, float(np.median(z_vertices)), geo.cam_h, geo, device, notes, t_start,
                torch.Generator().manual_seed(cfg.seed + 1))
     fit = _make_fit(run, cfg, z_vertices, seq.name, warn)
-    if out_dir is not None and cfg.resume and (Path(out_dir) / CHECKPOINT).is_file():
+    if out_dir is not None and cfg.resume and fit.opt is not None and (Path(out_dir) / CHECKPOINT).is_file():
         _resume(fit, run, Path(out_dir), warn)
     if fit.poses is not None and cfg.pose_align_iters > 0 and run.done.epoch == 0:
         delta0, run.align_log = _align_stage(fit, run)
@@ -128,7 +128,8 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     if cfg.moving_cutoff > 0:
         _drop_moving(fit, run)
     if cfg.bake_init and run.done.epoch == 0:
-        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits)
+        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits,
+                  semantics=fit.use_sem)
     run.init_hits = None  # freed before training
     history, schedule = _train(fit, run, out_dir, progress)
     mesh, metrics = _finish(fit, run, seq, history, schedule)
@@ -242,7 +243,8 @@ def _make_fit(run: _Run, cfg: MeshConfig, z_vertices: np.ndarray, seq_name: str,
     model.to(run.device)
     group, arm, run.n_groups = rig_groups(data.pool.keys, data.pool.T, cfg.pose_per)
     poses = PoseCorrections(group, arm, run.n_groups, run.device) if cfg.pose_refine else None
-    opt, params = make_optimizer(model, poses, cfg)
+    # without epochs there is nothing to step (and torch's first optimizer imports torch._dynamo: ~2 s)
+    opt, params = make_optimizer(model, poses, cfg) if cfg.epochs > 0 else (None, [])
     # the initial bake sees what this march saw unless poses or the pool change in between
     reuse = cfg.bake_init and poses is None and cfg.moving_cutoff <= 0
     data.pool, run.init_hits = visible_pixels(model, data.pool, run.fill, cfg.max_dist, seq_name, warn,
@@ -323,8 +325,8 @@ def _train(fit: Fit, run: _Run, out_dir: Path | None, progress: bool) -> tuple[l
     cfg, model = fit.cfg, fit.model
     n_epoch = max(1, int(round(len(fit.pool) * min(cfg.pixel_fraction, 1.0))))
     steps = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
-    bar = tqdm(total=(cfg.epochs - run.done.epoch) * steps, disable=not progress, desc="mesh", unit="step",
-               dynamic_ncols=True)
+    todo = (cfg.epochs - run.done.epoch) * steps
+    bar = tqdm(total=todo, disable=not progress or todo <= 0, desc="mesh", unit="step", dynamic_ncols=True)
     loop = _Loop(n_epoch, steps, max(1, cfg.epochs * steps), bar)
     history = run.done.history
     for epoch in range(run.done.epoch, cfg.epochs):
