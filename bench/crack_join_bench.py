@@ -60,7 +60,11 @@ def main() -> None:
         rows.append({"crack_join_m": j, "fuse_s": round(s, 1), **score(args.seq, out, metrics["mesh"])})
         print(json.dumps(rows[-1]), flush=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
-    write_results(OUT, {"benchmark": "fusion.crack_join_m on a finished drive (stages 2-3 only)",
+    # earlier results (another mesh or join rule) stay, under their commit
+    old = json.loads(OUT.read_text()) if OUT.is_file() else {}
+    history = old.get("history", []) + ([{k: old.get(k) for k in ("commit", "run", "rows", "machine")}]
+                                        if old.get("rows") else [])
+    write_results(OUT, {"benchmark": "fusion.crack_join_m on a finished drive (stages 2-3 only)", "history": history,
                         "run": str(args.run), "frames": len(json.loads((args.seq / "sequence.json").read_text())
                                                              .get("frames", [])),
                         "rows": rows, "commit": commit.strip(), **machine_entry()})

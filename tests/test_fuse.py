@@ -349,3 +349,10 @@ def test_pieces_of_one_crack_join_but_neighbouring_defects_do_not() -> None:
     assert sorted(round(i.area_m2, 2) for i in _crack_instances(blobs, 1.0)) == [1.32]
     # a blob 0.5 m beside the middle of a crack is not a piece of it
     assert len(_crack_instances([line[0], (slice(17, 22), slice(18, 23), 0)], 1.0)) == 2
+    # a wisp of 12 cells at an angle (elongated, but 0.6 m long: no direction of its own) 0.7 m before a crack's
+    # piece, in line with it, is a piece of it (KITTI-00 drive at 7b4866e: split across a seam before)
+    wisp = [(slice(40, 41), slice(10, 15), 0), (slice(41, 42), slice(10, 14), 0), (slice(42, 43), slice(9, 11), 0),
+            (slice(43, 44), slice(10, 11), 0)]
+    piece = [(slice(51, 59), slice(9, 15), 0)]
+    assert len(_crack_instances(wisp + piece, 1.0)) == 1
+    assert len(_crack_instances(wisp + piece, 0.5)) == 2

@@ -206,7 +206,7 @@ def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
     rows = np.arange(len(corners))
     tau = np.broadcast_to(np.linspace(-cfg.sweep_range, cfg.sweep_range, 60), (len(rows), 60))
     for sparse in (True, False):
-        got, want = sw.score(tau, rows, sparse), sw.score_reference(tau, rows, sparse)
+        got, want = sw.score(tau, rows, sparse), sw.score(tau, rows, sparse, reference=True)
         both = (got > -1) & (want > -1)
         assert both.mean() > 0.5 and ((got > -1) == (want > -1)).mean() > 0.999
         assert np.abs(got - want)[both].max() < 0.02, np.abs(got - want)[both].max()

@@ -83,7 +83,8 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
     each other, are together a line (their union's principal extent at least ``min_ratio`` times its width, from
     its second moments) and lie along it (the line between their centres within ``max_deg`` of its axis, not
     side by side), and neither piece is a line of its own across that axis. Pieces too short to have a direction
-    of their own join whenever together they form a line. Returns the new labels (ids 1..K') and K'.
+    of their own (shorter than ``gap_m``) join whenever together they form a line. Returns the new labels (ids
+    1..K') and K'.
 
     Why: a longitudinal or transverse crack is a line, and where a stretch of it is faint in every view its
     fused vertices fall apart into pieces 0.4-0.9 m apart along the line (8 of ~700 true cracks on the
@@ -130,13 +131,15 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
         a, b = int(ids[i]), int(ids[j])
         if cls[a - 1] != cls[b - 1] or np.linalg.norm(centre[a] - centre[b]) > reach[a] + reach[b] + gap_m:
             continue
-        u, ratio = _union_axis(n[[a, b]], m1[[a, b]], m2[[a, b]], res)
+        u, ratio, _ = _union_axis(n[[a, b]], m1[[a, b]], m2[[a, b]], res)
         d = centre[b] - centre[a]
         if ratio < min_ratio ** 2 or abs(float(d @ u)) < cos_max * float(np.linalg.norm(d)):
             continue
-        if any(r >= min_ratio ** 2 and abs(float(v @ u)) < cos_max for v, r in
+        # a piece that is a line of its own (elongated, and at least gap_m long: a wisp of a few cells has no
+        # direction) running across the pair's line: side by side, not one crack
+        if any(r >= min_ratio ** 2 and length >= gap_m and abs(float(v @ u)) < cos_max for v, r, length in
                (_union_axis(n[[c]], m1[[c]], m2[[c]], res) for c in (a, b))):
-            continue  # a piece that is a line of its own runs across the pair's line: side by side
+            continue
         if root(a) != root(b) and near(a, b):
             parent[root(a)] = root(b)
     roots = np.array([root(a) for a in range(k + 1)])
@@ -145,16 +148,18 @@ def join_crack_pieces(labels: np.ndarray, k: int, cls: np.ndarray, res: float, g
     return lut[labels], int(dense.max()) + 1
 
 
-def _union_axis(n: np.ndarray, m1: np.ndarray, m2: np.ndarray, res: float) -> tuple[np.ndarray, float]:
+def _union_axis(n: np.ndarray, m1: np.ndarray, m2: np.ndarray, res: float) -> tuple[np.ndarray, float, float]:
     """Principal axis (2,) of the union of pieces with vertex counts n (P,), coordinate sums m1 (P, 2) and
-    second-moment sums m2 (P, 3: xx, yy, xy), and the ratio of its variances along and across it (the
-    across-variance at least that of one cell, res^2 / 12)."""
+    second-moment sums m2 (P, 3: xx, yy, xy), the ratio of its variances along and across it (the
+    across-variance at least that of one cell, res^2 / 12) and its length along the axis (m; a uniform line's
+    from its variance, sqrt(12 var))."""
     tot = float(n.sum())
     mx, my = m1.sum(0) / tot
     sxx, syy, sxy = m2.sum(0) / tot - np.array([mx * mx, my * my, mx * my])
     half, mid = np.hypot(0.5 * (sxx - syy), sxy), 0.5 * (sxx + syy)
     theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)
-    return np.array([np.cos(theta), np.sin(theta)]), float((mid + half) / max(mid - half, res * res / 12))
+    return (np.array([np.cos(theta), np.sin(theta)]), float((mid + half) / max(mid - half, res * res / 12)),
+            float(np.sqrt(12.0 * max(mid + half, 0.0))))
 
 
 def build_instances(

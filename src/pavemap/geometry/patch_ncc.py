@@ -11,11 +11,14 @@ It computes in float64 with exact bilinear weights; the reference computes in fl
 sample positions to 1/32 px. Scores differ by ~1e-3 (the tests compare both); the points found are the same to
 a few tenths of a pixel.
 
-Where numba is missing, :func:`available` is False and the reference runs.
+Where numba is missing (:func:`available` False) or ``PAVEMAP_NCC=numpy`` asks for it, the reference runs.
 """
 
 from __future__ import annotations
 
+import os
+
+import cv2
 import numpy as np
 
 from pavemap.geometry.march_cpu import available
@@ -76,12 +79,47 @@ def _score_py(e, ratio, KU, kt, img, ref, out):
             out[r, s] = dot / max(np.sqrt(ss), 1e-6)
 
 
+def zncc_rows(x: np.ndarray) -> np.ndarray:
+    """(..., P) rows made zero-mean and unit-norm (a flat row stays ~0)."""
+    x = x - x.mean(-1, keepdims=True)
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-6)
+
+
+def sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples (M,) of a float32 image at pixels uv (M, 2) (pixel centres at integers; cv2.remap,
+    which rounds positions to 1/32 px; the border replicated)."""
+    n = len(uv)
+    if n == 0:
+        return np.zeros(0, np.float32)
+    w = 1024  # remap wants a 2D map of modest width
+    m = np.zeros((-(-n // w) * w, 2), np.float32)
+    m[:n] = uv
+    m = m.reshape(-1, w, 2)
+    return cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
+
+
+def sweep_scores_numpy(lam: np.ndarray, ratio: np.ndarray, KU: np.ndarray, kt: np.ndarray, img: np.ndarray,
+                       ref: np.ndarray) -> np.ndarray:
+    """:func:`sweep_scores` in numpy, float32 (the reference)."""
+    mu = lam.astype(np.float32)[:, :, None] * ratio[:, None, :]
+    z = mu * KU[..., 2][:, None] + kt[2]
+    zs = np.maximum(z, 1e-6)
+    u = (mu * KU[..., 0][:, None] + kt[0]) / zs
+    v = (mu * KU[..., 1][:, None] + kt[1]) / zs
+    W, H = img.shape[1] - 1, img.shape[0] - 1
+    inside = ((z > 0) & (u >= 0) & (v >= 0) & (u <= W) & (v <= H)).all(-1)
+    smp = zncc_rows(sample_bilinear(img, np.stack([u.ravel(), v.ravel()], 1)).reshape(u.shape))
+    return np.where(inside, np.einsum("rsp,rp->rs", smp, ref), -1.0)
+
+
 def sweep_scores(lam: np.ndarray, ratio: np.ndarray, KU: np.ndarray, kt: np.ndarray, img: np.ndarray,
                  ref: np.ndarray) -> np.ndarray:
-    """(R, S) float64 NCC scores. lam (R, S): each hypothesis's depth of the corner's ray; ratio (R, P): a patch
-    pixel's depth over the centre's on the plane; KU (R, P, 3): the pixels' rays through the partner's
-    intrinsics (``uvw = mu KU + kt``); kt (3,); img (H, W) float32 partner image; ref (R, P) zero-mean,
-    unit-norm reference patches."""
+    """(R, S) NCC scores; -1 where the warped patch leaves the image. lam (R, S): each hypothesis's depth of the
+    corner's ray; ratio (R, P): a patch pixel's depth over the centre's on the plane; KU (R, P, 3): the pixels'
+    rays through the partner's intrinsics (``uvw = mu KU + kt``); kt (3,); img (H, W) float32 partner image;
+    ref (R, P) zero-mean, unit-norm reference patches. Compiled where numba is, else :func:`sweep_scores_numpy`."""
+    if not available() or os.environ.get("PAVEMAP_NCC", "").lower() == "numpy":
+        return sweep_scores_numpy(lam, ratio, KU, kt, img, ref)
     out = np.empty(lam.shape, np.float64)
     _compiled()(np.ascontiguousarray(lam, np.float64), np.ascontiguousarray(ratio, np.float64),
                 np.ascontiguousarray(KU, np.float64), np.ascontiguousarray(kt, np.float64),
@@ -89,4 +127,4 @@ def sweep_scores(lam: np.ndarray, ratio: np.ndarray, KU: np.ndarray, kt: np.ndar
     return out
 
 
-__all__ = ["available", "sweep_scores"]
+__all__ = ["available", "sample_bilinear", "sweep_scores", "sweep_scores_numpy", "zncc_rows"]

@@ -38,13 +38,21 @@ def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
     ``images`` (R,) are the registered frames in order. Ground points seen on the ego vehicle
     (``ego_mask`` (H, W), True = ego) are dropped. Returns the heights (NaN where unobserved) and stats.
     """
+    import tempfile
+
+    from pavemap.io.egomask import write_ego_mask
     from pavemap.mesh.ground_points import GroundConfig, estimate_camera_height, find_ground_points
     from pavemap.palette import PAVEMAP_CLASSES
 
     frames = [Frame(i, float(i), {camera.name: View(camera.name, str(Path(p).resolve()), T)})
               for i, (p, T) in enumerate(zip(images, T_world_cam, strict=True))]
-    seq = Sequence("sfm", list(PAVEMAP_CLASSES), {camera.name: camera}, frames, None, Path("/"))
-    gp = find_ground_points(seq, GroundConfig(scale=scale, prior_height=camera_height), min_points=30)
+    with tempfile.TemporaryDirectory(prefix="pavemap-egomask-") as tmp:
+        # the matcher leaves the ego vehicle's pixels out from the start (corners on a textured bonnet that
+        # moves with the camera are mismatches waiting to happen); the points seen on it are dropped below too
+        cam = camera if ego_mask is None or not ego_mask.any() else dataclasses.replace(
+            camera, ego_mask=write_ego_mask(ego_mask, tmp, camera.name))
+        seq = Sequence("sfm", list(PAVEMAP_CLASSES), {camera.name: cam}, frames, None, Path(tmp))
+        gp = find_ground_points(seq, GroundConfig(scale=scale, prior_height=camera_height), min_points=30)
     stats = {"ground_points": len(gp), "observable": gp.observable, "reason": gp.reason}
     if ego_mask is not None and ego_mask.any() and len(gp):
         bad = np.zeros(len(gp), dtype=bool)

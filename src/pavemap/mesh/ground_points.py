@@ -15,7 +15,6 @@ sparse depth, self-check) is :mod:`pavemap.mesh.geometry`.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field, replace
 
@@ -170,23 +169,6 @@ def _load(seq: Sequence, vd: _ViewData, view: View, cfg: GroundConfig, ground_lu
 # ---------------------------------------------------------------------------- the patch sweep
 
 
-def _zncc_rows(x: np.ndarray) -> np.ndarray:
-    x = x - x.mean(-1, keepdims=True)
-    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-6)
-
-
-def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear samples (M,) of a float32 image at pixels uv (M, 2) (pixel centres at integers)."""
-    n = len(uv)
-    if n == 0:
-        return np.zeros(0, np.float32)
-    w = 1024  # remap wants a 2D map of modest width
-    m = np.zeros((-(-n // w) * w, 2), np.float32)
-    m[:n] = uv
-    m = m.reshape(-1, w, 2)
-    return cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
-
-
 class _Sweep:
     """One (reference a, partner b) pair for N corners (N, 2). Hypotheses are log depths ``tau`` of a
     corner's ray relative to the prior plane's depth ``lam0``."""
@@ -209,12 +191,11 @@ class _Sweep:
         self.kt = (Kb @ t_ba).astype(np.float32)
         self.xb, self.t_ba, self.Kb = xc @ R_ba.T, t_ba, Kb
         self.img = b.img
-        self.size = (self.img.shape[1] - 1, self.img.shape[0] - 1)
-        ref = _sample(a.img, q.reshape(-1, 2)).reshape(len(c), -1)
+        ref = patch_ncc.sample_bilinear(a.img, q.reshape(-1, 2)).reshape(len(c), -1)
         self.contrast = ref.std(-1)
         self.sparse = np.nonzero(((off[:, 0] % 2) == 0) & ((off[:, 1] % 2) == 0))[0]
-        self.ref = _zncc_rows(ref).astype(np.float32)
-        self.ref_sparse = _zncc_rows(ref[:, self.sparse]).astype(np.float32)
+        self.ref = patch_ncc.zncc_rows(ref).astype(np.float32)
+        self.ref_sparse = patch_ncc.zncc_rows(ref[:, self.sparse]).astype(np.float32)
         self.lam0 = -cfg.prior_height / (xc @ Ra.T)[:, 2]
         # px per unit tau along the epipolar line
         self.g = np.linalg.norm(self.centre_px(0.01) - self.centre_px(-0.01), axis=-1) / 0.02
@@ -224,29 +205,14 @@ class _Sweep:
         uvw = (lam[:, None] * self.xb[rows] + self.t_ba) @ self.Kb.T
         return uvw[:, :2] / uvw[:, 2:3]
 
-    def score(self, tau: np.ndarray, rows: np.ndarray, sparse: bool) -> np.ndarray:
-        """NCC (R, S) of hypotheses tau (R, S) of corners ``rows``; -1 where the patch leaves b. Compiled
-        (:mod:`pavemap.geometry.patch_ncc`) on a machine with numba unless ``PAVEMAP_NCC=numpy``."""
-        if patch_ncc.available() and os.environ.get("PAVEMAP_NCC", "").lower() != "numpy":
-            pix = self.sparse if sparse else slice(None)
-            ref = self.ref_sparse if sparse else self.ref
-            return patch_ncc.sweep_scores(self.lam0[rows, None] * np.exp(tau), self.ratio[rows][:, pix],
-                                          self.KU[rows][:, pix], self.kt, self.img, ref[rows])
-        return self.score_reference(tau, rows, sparse)
-
-    def score_reference(self, tau: np.ndarray, rows: np.ndarray, sparse: bool) -> np.ndarray:
-        """:meth:`score` in numpy (the reference of the compiled kernel)."""
+    def score(self, tau: np.ndarray, rows: np.ndarray, sparse: bool, reference: bool = False) -> np.ndarray:
+        """NCC (R, S) of hypotheses tau (R, S) of corners ``rows``; -1 where the patch leaves b
+        (:func:`pavemap.geometry.patch_ncc.sweep_scores`; ``reference``: its numpy reference)."""
         pix = self.sparse if sparse else slice(None)
-        mu = (self.lam0[rows, None] * np.exp(tau)).astype(np.float32)[:, :, None] * self.ratio[rows][:, None, pix]
-        KU = self.KU[rows][:, pix]
-        z = mu * KU[..., 2][:, None] + self.kt[2]
-        zs = np.maximum(z, 1e-6)
-        u = (mu * KU[..., 0][:, None] + self.kt[0]) / zs
-        v = (mu * KU[..., 1][:, None] + self.kt[1]) / zs
-        inside = ((z > 0) & (u >= 0) & (v >= 0) & (u <= self.size[0]) & (v <= self.size[1])).all(-1)
-        smp = _zncc_rows(_sample(self.img, np.stack([u.ravel(), v.ravel()], 1)).reshape(u.shape))
         ref = self.ref_sparse if sparse else self.ref
-        return np.where(inside, np.einsum("rsp,rp->rs", smp, ref[rows]), -1.0)
+        f = patch_ncc.sweep_scores_numpy if reference else patch_ncc.sweep_scores
+        return f(self.lam0[rows, None] * np.exp(tau), self.ratio[rows][:, pix], self.KU[rows][:, pix], self.kt,
+                 self.img, ref[rows])
 
     def best(self, tau: np.ndarray, rows: np.ndarray, sparse: bool, margin: float = 0.1):
         """Best hypothesis per row of tau (R, S) refined by a parabola: (tau, peak NCC, distinct peak)."""
