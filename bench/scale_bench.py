@@ -197,7 +197,8 @@ def main() -> None:
     write_results(OUT, {
         "benchmark": "long drives along KITTI-00's trajectory, stage 1 in segments (issue 17)",
         "drive": f"kitti-like, pavemap synth --trajectory 00.txt, image scale {args.scale}, no depth, seed 0; "
-                 "pavemap run --config kitti (7 epochs, simulated detector), CPU, each run its own process",
+                 "pavemap run --config kitti (the default mesh.epochs, 0 since 7b4866e; 7 before), simulated "
+                 "detector, CPU, each run its own process",
         "targets": "stage-1 s/frame flat within 1.3x; peak RSS <= 4 GiB, independent of length; seams <= 5 mm",
         "note": "the default cuts a path longer than 1.5 x mesh.segment_m (150 m) into segments; shorter drives are "
                 "one piece (the short-drive reference)",
