@@ -189,8 +189,11 @@ def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
     from pavemap.geometry import patch_ncc
     from pavemap.mesh.ground_points import _load, _Sweep, _ViewData
 
-    if not patch_ncc.available():
-        pytest.skip("numba missing: the reference runs")
+    assert patch_ncc.available(), "numba is a dependency of the package (pyproject.toml)"
+    monkeypatch.delenv("PAVEMAP_NCC", raising=False)  # the compiled kernel, not the reference, is under test
+    calls = []
+    real_reference = patch_ncc.sweep_scores_numpy
+    monkeypatch.setattr(patch_ncc, "sweep_scores_numpy", lambda *a: calls.append(1) or real_reference(*a))
     seq = drive[0]
     cfg = GroundConfig()
     luts = (seq.class_lut("ground") & ~seq.class_lut("movable"), seq.class_lut("road"))
@@ -206,7 +209,11 @@ def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
     rows = np.arange(len(corners))
     tau = np.broadcast_to(np.linspace(-cfg.sweep_range, cfg.sweep_range, 60), (len(rows), 60))
     for sparse in (True, False):
-        got, want = sw.score(tau, rows, sparse), sw.score(tau, rows, sparse, reference=True)
+        got = sw.score(tau, rows, sparse)
+        assert not calls  # the kernel scored, not the reference
+        want = sw.score(tau, rows, sparse, reference=True)
+        assert calls  # ... and this is the reference
+        calls.clear()
         both = (got > -1) & (want > -1)
         assert both.mean() > 0.5 and ((got > -1) == (want > -1)).mean() > 0.999
         assert np.abs(got - want)[both].max() < 0.02, np.abs(got - want)[both].max()
