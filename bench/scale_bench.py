@@ -28,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 
 from common import machine_entry, write_results  # noqa: E402
+from pavemap.mesh.config import MeshConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "scale.json"
@@ -200,8 +201,8 @@ def main() -> None:
                  "pavemap run --config kitti (the default mesh.epochs, 0 since 7b4866e; 7 before), simulated "
                  "detector, CPU, each run its own process",
         "targets": "stage-1 s/frame flat within 1.3x; peak RSS <= 4 GiB, independent of length; seams <= 5 mm",
-        "note": "the default cuts a path longer than 1.5 x mesh.segment_m (150 m) into segments; shorter drives are "
-                "one piece (the short-drive reference)",
+        "note": f"the default cuts a path longer than 1.5 x mesh.segment_m ({MeshConfig().segment_m:g} m) into "
+                "segments; shorter drives are one piece (the short-drive reference)",
         "rows": rows, "s_per_frame_ratio_max_min": round(max(spf) / min(spf), 3) if spf else None,
         "history": history,
         "load_avg_end": os.getloadavg(), "commit": commit.strip(), **machine_entry()})

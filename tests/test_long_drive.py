@@ -16,7 +16,7 @@ from pavemap.errors import PavemapError, SequenceError
 
 RADIUS = 22.0
 LAPS = 1.3
-SEGMENT_M = 60.0
+SEGMENT_M = 45.0  # the new road (128 m of the 180; the rest revisits the start) in 3
 # Fusion leaves slivers of a few cells beside some cracks on any drive (a box corner's footprint); a second
 # instance of a defect from a seam or from the other pass would be a defect-sized copy, so the checks count
 # instances of at least this area (m^2).

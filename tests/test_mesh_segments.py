@@ -10,7 +10,7 @@ import torch
 
 from pavemap.geometry import GridSpec, HeightField
 from pavemap.mesh.model import RoadMesh, build_grid
-from pavemap.mesh.segments import moving_frames, path_metres, plan_segments
+from pavemap.mesh.segments import moving_frames, path_metres, plan_segments, revisited_frames
 from pavemap.mesh.setup import path_pieces
 from pavemap.mesh.stitch import Stitcher, own_path, segment_weights
 
@@ -34,24 +34,43 @@ def test_plan_cuts_by_length_with_overlap():
     assert len(plan_segments(xy, 0.0, 20.0, 10.0)) == 1
 
 
-def test_plan_finds_the_other_pass_of_an_out_and_back_drive():
+def test_plan_reconstructs_road_driven_twice_once():
+    """Out and back on the opposite lane: the way back is no segment's own road, the way out's segments hold
+    its frames (one per revisit spacing) and own its road; the turn and a crossing stay with their own pass."""
     out = _line(201, 1.0)
     back = out[::-1] + [0.0, 3.5]  # U-turn: the opposite lane, 3.5 m over
     xy = np.concatenate([out, back[1:]])
+    s = path_metres(xy)
     plans = plan_segments(xy, 100.0, 15.0, 10.0)
-    assert len(plans) == 4
-    first, last = plans[0], plans[-1]
-    # the first stretch (x 0..100 m out) is driven again at the end (x 100..0 m back): each gets the other's frames
-    assert first.revisit and last.revisit
-    assert set(first.revisit) & set(last.own) and set(last.revisit) & set(first.own)
-    rx = xy[list(first.revisit), 0]
-    assert rx.min() < 10 and rx.max() < 150
+    # the way back revisits where it is more than 15 + 2 x 10 m of path past the way out's frame beside it
+    again = revisited_frames(xy, 10.0, 35.0, 30.0)
+    # (the 12th frame back lies within 10 m of the way out's frame 9.4 m behind it, 2 x 12 + 2.6 + 9.4 m of path before)
+    assert not again[:212].any() and again[212:].all()
+    assert len(plans) == 2  # 214 m of new road; 4 segments when each pass had its own
+    assert plans[-1].core[1] == pytest.approx(0.5 * (s[211] + s[212]))
+    own = set().union(*(p.own for p in plans))
+    assert not own & set(range(240, 401))  # past the overlap the way back is no segment's own
+    first = plans[0]
+    got = np.array(first.revisit)
+    assert xy[got, 1].min() == pytest.approx(3.5) and xy[got, 0].min() < 5 and xy[got, 0].max() < 140
+    share = np.array(first.share)
+    assert np.all(share[xy[got, 0] < 150] == 1.0)  # road the way back revisits: owned through the way out
+    # each revisit frame is owned as the road of the way out beside it (the frame beside it, within 10 m)
+    last = plans[-1]
+    rx, at = xy[list(last.revisit), 0], np.array(last.revisit_at)
+    beside = rx >= xy[last.own[0], 0]  # (the others look at its road from before its first own frame)
+    assert rx.size and np.all(np.array(last.share) == 1.0) and np.abs(at - rx)[beside].max() <= 10.0
+    # the turn's own frames on the way back (its overlap) are no revisit of their own segment
+    assert not set(last.revisit) & set(last.own)
     # thinned to one revisit frame per 3 m of their pass: the same stretch of the other pass, a third of its views
     thin = plan_segments(xy, 100.0, 15.0, 10.0, revisit_spacing_m=3.0)
     assert [p.own for p in thin] == [p.own for p in plans]
     kept = np.array(thin[0].revisit)
     assert set(kept) <= set(first.revisit) and abs(len(kept) - len(first.revisit) / 3) <= 2
-    assert np.diff(kept).min() >= 3 and xy[kept, 0].min() < 13 and xy[kept, 0].max() > rx.max() - 3
+    # a crossing (a second road across the first) is too short a revisit: both passes keep their own road
+    cross = np.concatenate([_line(201, 1.0), np.stack([np.full(200, 250.0), np.arange(200) - 100.0], 1)])
+    cross = np.concatenate([cross[:201], np.linspace(cross[200], cross[201], 60)[1:-1], cross[201:]])
+    assert not revisited_frames(cross, 10.0, 35.0, 30.0).any()
 
 
 def test_standing_vehicle_frames_are_skipped():
@@ -127,26 +146,37 @@ def test_blend_of_agreeing_tiles_is_the_plane():
 
 
 def test_revisited_road_is_one_surface():
-    """Two passes' segments over one road (each holding both passes' views) average into one surface."""
-    out = _line(201, 1.0)
-    xy = np.concatenate([out, out[::-1][1:] + [0.0, 0.5]])
-    s = path_metres(xy)
-    plans = plan_segments(xy, 200.0, 20.0, 10.0)
-    assert len(plans) == 2
-    st = Stitcher(build_grid(xy, 0.1, 3.0).spec)
+    """The way back 6 m beside the way out (beyond the way out's reach, within the revisit distance): the way out's
+    segments own it through its frames, it is observed, and where the way back becomes its own again (the turn)
+    the blend ramps without a step."""
     from pavemap.mesh.segments import _tile_grid
 
-    for plan, off in zip(plans, (0.0, 0.01), strict=True):
-        tile = _tile(xy[list(plan.positions)], off)
+    out = _line(301, 1.0)
+    xy = np.concatenate([out, out[::-1][1:] + [0.0, 6.0]])
+    s = path_metres(xy)
+    plans = plan_segments(xy, 100.0, 20.0, 10.0)
+    st = Stitcher(build_grid(xy, 0.1, 3.0).spec)
+    back = plans[-1]  # its core reaches round the turn onto the way back
+    for plan in plans:
+        tile = _tile(xy[list(plan.positions)], 0.02 if plan is back else 0.0)
         pxy, ps = own_path(xy[list(plan.own)], s[list(plan.own)])
-        st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2))
+        st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2, xy[list(plan.revisit)],
+                                     np.array(plan.revisit_at), np.array(plan.share)))
     m = st.mesh([0, 1], True)
     g = m.surface.grid
     X, Y = g.centres()
     resid = m.surface.heights.numpy() - 0.01 * X
-    v = m.surface.valid.numpy() & (X > 30) & (X < 170) & (np.abs(Y - 0.25) < 2.5)  # within reach of both passes
-    # both passes own the road there: the mean of the two, one layer
-    assert np.allclose(resid[v], 0.005, atol=2e-4)
+    valid = m.surface.valid.numpy()
+    lane = valid & (np.abs(Y - 6.0) < 1.0)
+    # the way back's road far from the turn: the way out's segments' surface, owned (observed), one layer
+    far = lane & (X > 20) & (X < 200)
+    assert far.sum() > 1000 and np.allclose(resid[far], 0.0, atol=1e-4) and m.observed.numpy()[far].all()
+    # towards the turn the way back's own segment takes over: continuous, at most the 2 cm over the 20 m ramp
+    j = int(round((6.0 - g.y0) / g.res))
+    x = g.x0 + np.arange(g.nx) * g.res
+    row = resid[j][(x > 20) & (x < 298) & valid[j]]
+    assert row.max() == pytest.approx(0.02, abs=1e-3)
+    assert np.abs(np.diff(row)).max() < 2.5e-4
 
 
 def test_a_standing_vehicle_is_skipped_before_training():

@@ -154,11 +154,13 @@ class MeshConfig:
     resume: bool = True  # continue from DIR/checkpoint.pt when it matches
     # Long drives (pavemap.mesh.segments): a path longer than 1.5 x ``segment_m`` is cut into segments of about
     # this length (m of path) overlapping by ``segment_overlap_m``, each reconstructed from its own views only
-    # and blended into one surface; memory then depends on the segment, not the drive (0: one piece).
-    segment_m: float = 150.0
+    # and blended into one surface; memory then depends on the segment, not the drive (0: one piece). Longer
+    # segments re-process fewer overlap views per metre; a segment's memory grows with its views.
+    segment_m: float = 250.0
     segment_overlap_m: float = 20.0
     # Frames of another pass (a loop, a U-turn) within this distance of a segment's path join its views, so that
-    # revisited road is one surface seen by both passes.
+    # revisited road is one surface seen by both passes; a later pass that stays on an earlier pass's road for
+    # 2 x ``segment_overlap_m`` or more is reconstructed there by the earlier pass's segments only.
     segment_revisit_m: float = 10.0
     # ... one of them every this many metres along its pass (0: all): the own pass already sees the road every
     # metre, and every revisit view costs stage 1 as much as an own one (see the README's long-drive bench).

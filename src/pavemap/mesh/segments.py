@@ -31,7 +31,7 @@ from pavemap.mesh.data import finite_views, split_frames
 from pavemap.mesh.evaluate import truth_metrics
 from pavemap.mesh.model import RoadMesh
 from pavemap.mesh.setup import trajectory_grid
-from pavemap.mesh.stitch import Stitcher, own_path, segment_weights
+from pavemap.mesh.stitch import Stitcher, core_ramp, own_path, segment_weights
 from pavemap.mesh.tiles import SEGMENTS_DIR, TileJob, tile_stamp
 from pavemap.types import Sequence
 
@@ -42,12 +42,17 @@ log = logging.getLogger("pavemap")
 class SegmentPlan:
     """One segment: ``core`` the path-length interval (m from the first frame) whose road it owns (-inf / inf
     at the drive's ends); ``own`` the positions (in the sequence's frame list) of its stretch of path, the core
-    and the overlap either side; ``revisit`` those of other passes over its road."""
+    and the overlap either side; ``revisit`` those of other passes over its road, and ``share`` for each of
+    them the part of that pass's road this segment owns (1 on road the pass revisits, ramping to 0 over the
+    overlap at the ends of the revisit, 0 where the pass's own segments own its road) and ``revisit_at`` the
+    path length of the own road beside it (NaN with share 0)."""
 
     index: int
     core: tuple[float, float]
     own: tuple[int, ...]
     revisit: tuple[int, ...] = ()
+    share: tuple[float, ...] = ()
+    revisit_at: tuple[float, ...] = ()
 
     @property
     def positions(self) -> tuple[int, ...]:
@@ -55,7 +60,8 @@ class SegmentPlan:
 
     def to_dict(self) -> dict:
         return {"index": self.index, "core_m": [None if math.isinf(c) else round(c, 3) for c in self.core],
-                "own": [self.own[0], self.own[-1]], "own_frames": len(self.own), "revisit_frames": len(self.revisit)}
+                "own": [self.own[0], self.own[-1]], "own_frames": len(self.own), "revisit_frames": len(self.revisit),
+                "revisit_owned_frames": int(sum(f > 0 for f in self.share))}
 
 
 def path_metres(traj_xy: np.ndarray) -> np.ndarray:
@@ -77,24 +83,73 @@ def moving_frames(traj_xy: np.ndarray, min_step_m: float) -> np.ndarray:
     return keep
 
 
-def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisit_m: float,
-                  revisit_spacing_m: float = 0.0) -> list[SegmentPlan]:
-    """Segments of the path (F, 2) by length: ``round(path / length_m)`` equal cores (at least one), each with
-    the frames within ``overlap_m`` of its core, plus the frames of other passes within ``revisit_m`` of its
-    core's path and those within ``overlap_m`` of them along their own pass (the frames that look at it), of
-    those one per ``revisit_spacing_m`` of path (0: all)."""
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The maximal runs of True in ``mask`` (F,) as (first, last) index pairs."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1).tolist(), (np.flatnonzero(d == -1) - 1).tolist(), strict=True))
+
+
+def revisited_frames(traj_xy: np.ndarray, revisit_m: float, after_m: float, min_run_m: float) -> np.ndarray:
+    """(F,) bool: the frames on road an earlier pass drove, whose road that pass's segments own.
+
+    A frame revisits when it lies within ``revisit_m`` of a frame more than ``after_m`` of path before it that
+    does not revisit itself, in a run of such frames at least ``min_run_m`` of path long: a crossing or a short
+    stretch of shared road stays with its own pass (whose segments would otherwise be cut there)."""
     t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
     s = path_metres(t)
-    n = max(1, int(round(s[-1] / length_m))) if length_m > 0 else 1
-    cuts = np.linspace(0.0, s[-1], n + 1)
+    out = np.zeros(len(t), bool)
+    if len(t) < 2 or revisit_m <= 0:
+        return out
+    pairs = cKDTree(t).query_pairs(revisit_m, output_type="ndarray")
+    if not len(pairs):
+        return out
+    a, b = pairs.min(1), pairs.max(1)
+    far = s[b] - s[a] > after_m
+    a, b = a[far], b[far]
+    for _ in range(2):  # a third pass near a second pass's road is owned by the first pass only if near it too
+        near = np.zeros(len(t), bool)
+        near[b[~out[a]]] = True
+        out = np.zeros(len(t), bool)
+        for i, j in _runs(near):
+            out[i:j + 1] = s[j] - s[i] >= min_run_m
+    return out
+
+
+def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisit_m: float,
+                  revisit_spacing_m: float = 0.0) -> list[SegmentPlan]:
+    """Segments of the path (F, 2) by length, each road reconstructed once.
+
+    The frames that revisit road an earlier pass drove (:func:`revisited_frames`) are no segment's own: the
+    rest of the path falls into stretches of new road, each cut into ``round(length / length_m)`` equal cores
+    (at least one). A segment holds the frames within ``overlap_m`` of its core along the path, plus the frames
+    of other passes within ``revisit_m`` of its core's path and those within ``overlap_m`` of them along their
+    own pass (the frames that look at it), of those one per ``revisit_spacing_m`` of path (0: all)."""
+    t = np.asarray(traj_xy, dtype=np.float64).reshape(-1, 2)
+    s = path_metres(t)
+    band_m = overlap_m + 2 * revisit_m
+    again = revisited_frames(t, revisit_m, band_m, 2 * overlap_m) if length_m > 0 else np.zeros(len(t), bool)
+    bounds = [0.5 * (s[j] + s[j + 1]) for j in np.flatnonzero(np.diff(again.astype(np.int8)) != 0)]
+    edges = [-math.inf, *bounds, math.inf]
+    runs = [(lo, hi) for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True))
+            if k % 2 == int(again[0])]  # the stretches of new road (the drive starts on one)
+    share = np.zeros(len(t))
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        if (lo, hi) not in runs:
+            share = np.maximum(share, core_ramp(s, (lo, hi), overlap_m))
+    cores: list[tuple[float, float]] = []
+    for lo, hi in runs:
+        span = min(hi, s[-1]) - max(lo, 0.0)
+        n = max(1, int(round(span / length_m))) if length_m > 0 else 1
+        cuts = np.linspace(max(lo, 0.0), min(hi, s[-1]), n + 1)
+        cores += [(lo if k == 0 else float(cuts[k]), hi if k == n - 1 else float(cuts[k + 1])) for k in range(n)]
     plans = []
-    for k in range(n):
-        lo, hi = (cuts[k] if k else -math.inf), (cuts[k + 1] if k < n - 1 else math.inf)
-        own = np.flatnonzero((s >= cuts[k] - overlap_m) & (s <= cuts[k + 1] + overlap_m))
-        core = np.flatnonzero((s >= cuts[k] - 0.5 * overlap_m) & (s <= cuts[k + 1] + 0.5 * overlap_m))
+    for k, (lo, hi) in enumerate(cores):
+        own = np.flatnonzero((s >= lo - overlap_m) & (s <= hi + overlap_m))
+        core = np.flatnonzero((s >= lo - 0.5 * overlap_m) & (s <= hi + 0.5 * overlap_m))
         # Another pass: frames far along the path from this stretch (not its own continuation), near its road.
-        band = (s >= cuts[k] - overlap_m - 2 * revisit_m) & (s <= cuts[k + 1] + overlap_m + 2 * revisit_m)
-        others = np.flatnonzero(~band)
+        mine = np.zeros(len(t), bool)
+        mine[own] = True
+        others = np.flatnonzero(((s < lo - band_m) | (s > hi + band_m) | again) & ~mine)
         revisit = np.zeros(0, np.int64)
         if others.size and core.size:
             d, _ = cKDTree(t[core]).query(t[others])
@@ -104,9 +159,27 @@ def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisi
                 gap = np.minimum(np.abs(s[others] - near_s[j - 1]), np.abs(near_s[np.minimum(j, near_s.size - 1)]
                                                                           - s[others]))
                 revisit = _thin(others[gap <= overlap_m], s, revisit_spacing_m)
-        plans.append(SegmentPlan(k, (float(lo), float(hi)), tuple(int(i) for i in own),
-                                 tuple(int(i) for i in revisit)))
+        at = _revisited_at(t, s, own, revisit, band_m)
+        owned = np.where(np.isfinite(at), share[revisit], 0.0)
+        plans.append(SegmentPlan(k, (float(lo), float(hi)), tuple(int(i) for i in own), tuple(int(i) for i in revisit),
+                                 tuple(round(float(f), 4) for f in owned), tuple(round(float(a), 3) for a in at)))
     return plans
+
+
+def _revisited_at(t: np.ndarray, s: np.ndarray, own: np.ndarray, revisit: np.ndarray, band_m: float) -> np.ndarray:
+    """(R,) the path length of the own frame nearest to each revisit frame among those more than ``band_m`` of
+    path before it (the earlier pass it revisits; NaN where there is none: the frame's pass came first)."""
+    at = np.full(len(revisit), np.nan)
+    if not len(revisit) or not len(own):
+        return at
+    k = min(len(own), 32)
+    _, nn = cKDTree(t[own]).query(t[revisit], k=k)
+    cand = own[np.asarray(nn).reshape(len(revisit), k)]  # (R, k) nearest first
+    ok = s[cand] <= s[revisit, None] - band_m
+    first = ok.argmax(1)
+    hit = ok[np.arange(len(revisit)), first]
+    at[hit] = s[cand[np.flatnonzero(hit), first[hit]]]
+    return at
 
 
 def _thin(idx: np.ndarray, s: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -192,7 +265,7 @@ def plan_drive(seq: Sequence, cfg: MeshConfig) -> DrivePlan:
         notes.append(f"{len(seq.frames) - len(pos)} frame(s) with a NaN/infinite pose skipped")
     local = plan_segments(traj[:, :2], cfg.segment_m, cfg.segment_overlap_m, cfg.segment_revisit_m,
                           cfg.segment_revisit_spacing_m)
-    plans = [SegmentPlan(p.index, p.core, tuple(pos[i] for i in p.own), tuple(pos[i] for i in p.revisit))
+    plans = [dataclasses.replace(p, own=tuple(pos[i] for i in p.own), revisit=tuple(pos[i] for i in p.revisit))
              for p in local]
     held_local = split_frames(len(pos), cfg.holdout_every, 1)[1]
     heldout = {seq.frames[pos[i]].index for i in held_local}
@@ -258,7 +331,8 @@ def reconstruct_segmented(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, 
                 log.info("mesh: %s reused from %s", label, folder)
         path_xy, path_s = own_path(dp.traj[list(lp.own), :2], dp.s[list(lp.own)])
         w = segment_weights(_tile_grid(tile), path_xy, path_s, plan.core, cfg.segment_overlap_m,
-                            cfg.crop_m + 2.0 * cfg.resolution)
+                            cfg.crop_m + 2.0 * cfg.resolution, dp.traj[list(lp.revisit), :2], np.array(lp.revisit_at),
+                            np.array(lp.share))
         seam = stitcher.add(tile, w)
         seconds = fresh.get(plan.index, time.perf_counter() - t_seg)
         rows.append(_row(plan, dp.s[list(lp.own)], m, seconds, got is not None and plan.index not in fresh, seam))

@@ -36,28 +36,54 @@ def own_path(traj_xy: np.ndarray, path_m: np.ndarray, step_m: float = 0.5) -> tu
     return pts, np.interp(run, along_own, path_m) if len(traj_xy) > 1 else np.full(len(pts), path_m[0])
 
 
+def core_ramp(s: np.ndarray, core: tuple[float, float], overlap_m: float) -> np.ndarray:
+    """The share (0..1) of the road at path length ``s`` that a core interval owns: 1 inside, ramping linearly
+    to 0 over ``overlap_m`` centred on each end (-inf / inf: no end), so that neighbouring cores sum to one."""
+    ov = max(float(overlap_m), 1e-6)
+    lo, hi = core
+    return np.clip((s - (lo - 0.5 * ov)) / ov, 0.0, 1.0) * np.clip(((hi + 0.5 * ov) - s) / ov, 0.0, 1.0)
+
+
 def segment_weights(grid: MeshGrid, path_xy: np.ndarray, path_s: np.ndarray, core: tuple[float, float],
-                    overlap_m: float, reach_m: float) -> np.ndarray:
+                    overlap_m: float, reach_m: float, revisit_xy: np.ndarray | None = None,
+                    revisit_at: np.ndarray | None = None, revisit_share: np.ndarray | None = None) -> np.ndarray:
     """(ny, nx) float32 blending weights of a segment's tile on its grid.
 
     path_xy (M, 2), path_s (M,): its own stretch of path (:func:`own_path`); core: the path-length interval it
     owns (-inf / inf at the drive's ends); a cell's path coordinate is that of the nearest path point, and only
-    cells within ``reach_m`` of the path are owned (farther cells belong to another pass)."""
+    cells within ``reach_m`` of the path are owned (farther cells belong to another pass). revisit_xy (R, 2),
+    revisit_at (R,), revisit_share (R,): frames of another pass that revisits this segment's road, the path
+    length of the own road beside each and the share of their pass's road this segment owns
+    (:class:`pavemap.mesh.segments.SegmentPlan`): cells within ``reach_m`` of them are owned as the own road
+    beside them is, times the share."""
     xy = grid.vertex_xy()
-    d, k = cKDTree(path_xy).query(xy)
-    s = path_s[k]
-    if len(path_xy) > 1:  # along the path's local direction: continuous, not in steps of the point spacing
-        tan = np.gradient(path_xy, axis=0)
-        tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-9)
-        ds = np.gradient(path_s)
-        s = s + np.clip(((xy - path_xy[k]) * tan[k]).sum(1), -np.abs(ds[k]), np.abs(ds[k])) * np.sign(ds[k])
     ov = max(float(overlap_m), grid.spec.res)
-    lo, hi = core
-    ramp = np.clip((s - (lo - 0.5 * ov)) / ov, 0.0, 1.0) * np.clip(((hi + 0.5 * ov) - s) / ov, 0.0, 1.0)
-    w = np.where(d <= reach_m, ramp, 0.0) + FLOOR_WEIGHT
+    d, s = _along_path(xy, path_xy, path_s)
+    w = np.where(d <= reach_m, core_ramp(s, core, ov), 0.0)
+    keep = None if revisit_share is None else np.asarray(revisit_share) > 0
+    if keep is not None and keep.any():
+        rxy = np.asarray(revisit_xy, np.float64)[keep]
+        rw = core_ramp(np.asarray(revisit_at, np.float64)[keep], core, ov) * np.asarray(revisit_share)[keep]
+        d2, w2 = _along_path(xy, rxy, rw)
+        w = np.maximum(w, np.where(d2 <= reach_m, np.clip(w2, 0.0, 1.0), 0.0))
+    w = w + FLOOR_WEIGHT
     out = np.zeros(grid.valid.shape, np.float32)
     out.reshape(-1)[np.flatnonzero(grid.valid.reshape(-1))] = w
     return out
+
+
+def _along_path(xy: np.ndarray, path_xy: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For points xy (N, 2): the distance to the nearest of the path's points path_xy (M, 2) and ``values``
+    (M,) there, carried linearly along the path's local direction (continuous, not in steps of the points'
+    spacing)."""
+    d, k = cKDTree(path_xy).query(xy)
+    v = np.asarray(values, np.float64)[k]
+    if len(path_xy) > 1:
+        step = np.gradient(path_xy, axis=0)
+        length = np.maximum(np.linalg.norm(step, axis=1), 1e-9)
+        along = ((xy - path_xy[k]) * (step[k] / length[k, None])).sum(1) / length[k]
+        v = v + np.clip(along, -1.0, 1.0) * np.gradient(np.asarray(values, np.float64))[k]
+    return d, v
 
 
 @dataclass
