@@ -105,7 +105,8 @@ def per_segment(seq: Path, out: Path, mesh_m: dict) -> tuple[list[dict], dict]:
                      "precision": round(sc["precision"], 3), "truth_visible": sc["truth"],
                      "height_rmse_m": r.get("height_rmse"), "height_rmse_seen_m": r.get("height_rmse_seen"),
                      "psnr": r.get("psnr"), "seconds": r.get("seconds"), "frames": r.get("own_frames"),
-                     "revisit_frames": r.get("revisit_frames"), "seam_median_abs_m": r.get("seam_median_abs_m")})
+                     "revisit_frames": r.get("revisit_frames"), "seam_median_abs_m": r.get("seam_median_abs_m"),
+                     "pass_median_abs_m": r.get("pass_median_abs_m")})
     split = {"anywhere": 0, "at_seams": 0, "on_seams_visible": 0, "with_slivers_anywhere": 0}
     overlap = (mesh_m.get("config") or {}).get("segment_overlap_m", 20.0)
     for i, t in enumerate(truth):
@@ -142,7 +143,8 @@ def row(seq: Path, out: Path, frames: int, got: dict, synth_s: float | None, seg
             "vertices": mesh_m.get("vertices"), "psnr": mesh_m.get("psnr"),
             "height_rmse_m": mesh_m.get("height_rmse"), "height_rmse_seen_m": mesh_m.get("height_rmse_seen"),
             "camera_height_m": ((mesh_m.get("geometry") or {}).get("camera_height") or {}).get("used_m"),
-            "seams": mesh_m.get("seams"), "f1": ev.get("f1"), "recall": ev.get("recall"),
+            "seams": mesh_m.get("seams"), "passes": mesh_m.get("passes"), "f1": ev.get("f1"),
+            "recall": ev.get("recall"),
             "precision": ev.get("precision"), "median_error_m": ev.get("median_error_m"),
             "split_defects": split, "per_segment": segs}
 

@@ -239,3 +239,22 @@ def test_initial_semantic_bake_labels_the_mesh_without_training(seq):
     mesh, m = reconstruct(seq, None, MeshConfig(**cfg), progress=False)
     assert len(set(mesh.sem_logits.argmax(-1).tolist())) > 1
     assert m["sem_acc"] > 0.9, m["sem_acc"]
+
+
+def test_a_hit_a_hair_outside_its_triangle_votes_nothing_against_a_vertex():
+    """Barycentric weights of -0.003 (rounding at a triangle's edge, seen on KITTI-00) once left a vertex whose
+    only votes summed to ~0 with a colour of 1e6 and broke the views' exposure fit; now they count as 0."""
+    from pavemap.mesh.bake import _mean_colours, batch_hits
+    from pavemap.mesh.data import PixelPool, ViewKey
+
+    n = 2
+    pool = PixelPool([ViewKey(0, "c")], torch.eye(3)[None], torch.eye(4)[None], torch.zeros(n, dtype=torch.long),
+                     torch.zeros(n, 2), torch.tensor([[200, 200, 200], [100, 100, 100]], dtype=torch.uint8),
+                     torch.full((n,), -1, dtype=torch.long), torch.ones(n, dtype=torch.bool), None)
+    vid = torch.tensor([[0, 1, 2], [0, 1, 3]])  # vertex 3 is reached only by the second pixel's stray vote
+    w = torch.tensor([[0.5, 0.5, 0.0], [0.4, 0.6030, -0.0030]])
+    h = batch_hits(pool, slice(0, n), torch.arange(n), vid, w)
+    assert float(h.w.min()) >= 0 and torch.allclose(h.w.sum(1), torch.ones(n))
+    rgb, support = _mean_colours([h], 4, None, torch.device("cpu"))
+    assert float(support[3]) == 0 and torch.isfinite(rgb).all() and float(rgb.abs().max()) <= 1.0
+    assert rgb[0, 0].item() == pytest.approx((0.5 * 200 + 0.4 * 100 / 1.003) / (0.5 + 0.4 / 1.003) / 255, abs=1e-6)

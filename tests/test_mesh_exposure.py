@@ -42,6 +42,9 @@ def test_a_view_without_pixels_keeps_the_prior_and_a_wild_fit_is_refused():
     pred = torch.rand(3000, 3, dtype=torch.float64)
     e = exposure.fit(view, pred, 50.0 * pred, 2)  # view 0: gain 50 is no exposure; view 1: no pixels
     assert torch.allclose(e, exposure.identity(2))
+    # nor is an offset of 0.7 (of a colour range of 1) with a plausible gain
+    e = exposure.fit(view, pred, 0.9 * pred - 0.7, 2)
+    assert torch.allclose(e, exposure.identity(2))
 
 
 def test_interpolation_per_camera_in_time():

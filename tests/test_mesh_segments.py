@@ -119,7 +119,8 @@ def _blend(offsets: tuple[float, float]) -> tuple[RoadMesh, dict, GridSpec]:
         from pavemap.mesh.segments import _tile_grid
 
         pxy, ps = own_path(own, s[list(plan.own)])
-        seams.append(st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2)))
+        w = segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2)
+        seams.append(st.add(tile, w, plan.index + 1, plan.index or None))  # after the one before it on the path
     return st.mesh([0, 1], True), seams[1], drive
 
 
@@ -134,6 +135,22 @@ def test_blend_is_continuous_across_the_seam_and_measures_the_step():
     # the 2 cm are shared out over the 20 m ramp: no step larger than 0.02 * 0.1 / 20 between cells
     assert np.abs(np.diff(row[(x > 1) & (x < 119)])).max() < 2e-4 + 1e-6
     assert mesh.observed.numpy()[j, (x > 1) & (x < 119)].all()
+
+
+def test_overlap_with_a_segment_not_before_it_on_the_path_is_no_seam():
+    xy = _line(121, 1.0)
+    s = path_metres(xy)
+    plans = plan_segments(xy, 60.0, 20.0, 10.0)
+    st = Stitcher(build_grid(xy, 0.1, 3.0).spec)
+    from pavemap.mesh.segments import _tile_grid
+
+    got = []
+    for plan, off in zip(plans, (0.0, 0.02), strict=True):
+        tile = _tile(xy[list(plan.own)], off)
+        pxy, ps = own_path(xy[list(plan.own)], s[list(plan.own)])
+        got.append(st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2), plan.index + 1))
+    # as another pass's segment would (a crossing): its disagreement is the passes', not a seam's
+    assert got[1]["seam_cells"] == 0 and got[1]["pass_median_abs_m"] == pytest.approx(0.02, abs=1e-4)
 
 
 def test_blend_of_agreeing_tiles_is_the_plane():
@@ -160,8 +177,12 @@ def test_revisited_road_is_one_surface():
     for plan in plans:
         tile = _tile(xy[list(plan.positions)], 0.02 if plan is back else 0.0)
         pxy, ps = own_path(xy[list(plan.own)], s[list(plan.own)])
-        st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2, xy[list(plan.revisit)],
-                                     np.array(plan.revisit_at), np.array(plan.share)))
+        stats = st.add(tile, segment_weights(_tile_grid(tile), pxy, ps, plan.core, 20.0, 3.2, xy[list(plan.revisit)],
+                                             np.array(plan.revisit_at), np.array(plan.share)),
+                       plan.index + 1, plan.index or None)
+    # the turn's segment meets the segment before it along the path (and beside the way back, where that one
+    # owns the way back's road): 2 cm apart, reported as its seam; no other pass's segment shares its road
+    assert stats["seam_median_abs_m"] == pytest.approx(0.02, abs=1e-4) and stats["pass_cells"] == 0
     m = st.mesh([0, 1], True)
     g = m.surface.grid
     X, Y = g.centres()

@@ -20,6 +20,7 @@ from pavemap.mesh.data import ViewKey
 # Pseudo-pixels of the prior (a, b) = (1, 0): a view with a few hundred road pixels keeps nearly its prior.
 PRIOR_PIXELS = 200.0
 GAIN_RANGE = (0.25, 4.0)  # a fitted gain outside this is a failed fit, not an exposure
+OFFSET_RANGE = (-0.5, 0.5)  # ... and an offset of half the colour range (images in [0, 1])
 
 
 def identity(n_views: int, device: torch.device | None = None) -> torch.Tensor:
@@ -66,7 +67,8 @@ def fit(view: torch.Tensor, pred: torch.Tensor, obs: torch.Tensor, n_views: int,
     a = (n * sxy - sx * sy) / det
     b = (sy - a * sx) / n
     out = torch.stack([a, b], 1)
-    bad = ~torch.isfinite(out).all(1) | (a < GAIN_RANGE[0]) | (a > GAIN_RANGE[1])
+    bad = (~torch.isfinite(out).all(1) | (a < GAIN_RANGE[0]) | (a > GAIN_RANGE[1]) | (b < OFFSET_RANGE[0])
+           | (b > OFFSET_RANGE[1]))
     out[bad] = identity(1, out.device)
     return normalise(out, s[:, 0])
 

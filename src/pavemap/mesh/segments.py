@@ -1,8 +1,9 @@
 """Long drives in segments (issue 17): memory that depends on a segment, not on the drive.
 
 The path is cut by length into segments of about ``mesh.segment_m`` that overlap by ``mesh.segment_overlap_m``;
-frames of other passes over a segment's road (a loop, a U-turn) join its views; frames of a standing vehicle
-are skipped. Each segment is reconstructed from its own frames' pixels only (:func:`reconstruct_segment`, a
+road a later pass drives again is no segment's own but the earlier pass's segments', which hold the later pass's
+frames there; frames of other passes near a segment's road (a crossing) join its views; frames of a standing
+vehicle are skipped. Each segment is reconstructed from its own frames' pixels only (:func:`reconstruct_segment`, a
 pure function of its inputs, so that segments can run as separate tasks), written to
 ``DIR/segments/NNN/`` as soon as it is done (a stopped run resumes at the first segment not written), and
 blended into the drive's surface (:mod:`pavemap.mesh.stitch`). The held-out frames are the drive's, so that
@@ -333,7 +334,8 @@ def reconstruct_segmented(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, 
         w = segment_weights(_tile_grid(tile), path_xy, path_s, plan.core, cfg.segment_overlap_m,
                             cfg.crop_m + 2.0 * cfg.resolution, dp.traj[list(lp.revisit), :2], np.array(lp.revisit_at),
                             np.array(lp.share))
-        seam = stitcher.add(tile, w)
+        before = dp.plans[plan.index - 1] if plan.index else None
+        seam = stitcher.add(tile, w, plan.index + 1, plan.index if before and before.core[1] == plan.core[0] else None)
         seconds = fresh.get(plan.index, time.perf_counter() - t_seg)
         rows.append(_row(plan, dp.s[list(lp.own)], m, seconds, got is not None and plan.index not in fresh, seam))
         seg_notes += [f"segment {plan.index + 1}: {n}" for n in m.get("warnings", [])]
@@ -371,6 +373,7 @@ def _drive_metrics(seq: Sequence, mesh: RoadMesh, rows: list[dict], notes: list[
     valid = s.valid.numpy()
     observed = mesh.observed.numpy() & valid
     seam_abs = [r["seam_median_abs_m"] for r in rows if r.get("seam_median_abs_m") is not None]
+    pass_abs = [r["pass_median_abs_m"] for r in rows if r.get("pass_median_abs_m") is not None]
     sem = [(r["sem_acc"], r.get("heldout_views") or 1) for r in rows if r.get("sem_acc") is not None]
     untrusted = [r["index"] + 1 for r in rows if r.get("trustworthy") is False]
     cam_h = [r["camera_height_m"] for r in rows if r.get("camera_height_m") is not None]
@@ -390,6 +393,9 @@ def _drive_metrics(seq: Sequence, mesh: RoadMesh, rows: list[dict], notes: list[
         "grid": s.grid.to_dict(), "segments": rows,
         "seams": {"count": len(seam_abs), "median_abs_m": float(np.median(seam_abs)) if seam_abs else None,
                   "max_abs_m": max(seam_abs) if seam_abs else None},
+        # where segments of different passes both own the road (a crossing, the ends of a revisit)
+        "passes": {"count": len(pass_abs), "median_abs_m": float(np.median(pass_abs)) if pass_abs else None,
+                   "max_abs_m": max(pass_abs) if pass_abs else None},
         "geometry": geometry, "warnings": notes, "history": [], "config": cfg.to_dict(),
         "seconds": seconds, "frames": frames, "seconds_per_frame": seconds / max(1, frames),
     }

@@ -2,10 +2,10 @@
 
 Each segment owns the road whose nearest point on its own stretch of path lies inside its core interval of
 path length; across a seam the weights of the two segments ramp linearly over ``overlap_m`` and sum to one, so
-the blended heights, colours and logits are continuous. Road another pass revisits is owned by the segments of
-both passes (each trained on both passes' views) and averaged: one surface, not two layers. A tile's cells no
-segment owns (the road the end frames look at past the drive) keep a tiny floor weight, so that the segments
-whose crop holds them are averaged there.
+the blended heights, colours and logits are continuous. Road a later pass revisits is owned by the earlier
+pass's segments (trained on both passes' views) through the later pass's frames: one surface, computed once.
+A tile's cells no segment owns (the road the end frames look at past the drive) keep a tiny floor weight, so
+that the segments whose crop holds them are averaged there.
 """
 
 from __future__ import annotations
@@ -103,7 +103,8 @@ class Stitcher:
     def _alloc(self, channels: int) -> None:
         self.channels = channels
         self.sums = {"w": np.zeros(0, np.float32), "h": np.zeros(0, np.float64), "rgb": np.zeros((0, 3), np.float32),
-                     "sem": np.zeros((0, channels), np.float32), "observed": np.zeros(0, bool)}
+                     "sem": np.zeros((0, channels), np.float32), "observed": np.zeros(0, bool),
+                     "owner": np.zeros(0, np.int32)}  # the last tile (number, from 1) that owned the cell
 
     def _rows(self, g: GridSpec, tile_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(inside (M,) bool, rows (inside.sum(),) int64): which tile vertices (flat ids on tile grid ``g``) lie
@@ -125,10 +126,12 @@ class Stitcher:
             self.cells = merged
         return inside, np.searchsorted(self.cells, flat)
 
-    def add(self, tile: RoadMesh, weight: np.ndarray) -> dict:
-        """Blend ``tile`` with ``weight`` (its (ny, nx) :func:`segment_weights`) into the sums; returns how it
-        agrees with the segments added before it where both own the road and measured its height:
-        ``{"seam_cells", "seam_median_abs_m", "seam_median_m"}`` (None without such cells)."""
+    def add(self, tile: RoadMesh, weight: np.ndarray, number: int = 0, seam_with: int | None = None) -> dict:
+        """Blend tile ``number`` (from 1) with ``weight`` (its (ny, nx) :func:`segment_weights`) into the sums;
+        returns how it agrees with the segments added before it where both own the road and measured its height:
+        across its seam with tile ``seam_with`` (the segment before it along the path, where their cores meet)
+        ``{"seam_cells", "seam_median_abs_m", "seam_median_m"}``, and with other passes' segments (crossings,
+        the ends of a revisit) ``{"pass_cells", "pass_median_abs_m"}`` (None without such cells)."""
         s = tile.surface
         if abs(s.res - self.spec.res) > 1e-9:
             raise ValueError(f"tile resolution {s.res} differs from the drive's {self.spec.res}")
@@ -136,7 +139,8 @@ class Stitcher:
             self._alloc(int(tile.sem_logits.shape[-1]))
         tv = tile.vertex_ids.cpu().numpy()
         found, k = self._rows(s.grid, tv)  # vertices off the drive's grid are left out, as any window would
-        stats = {"seam_cells": 0, "seam_median_abs_m": None, "seam_median_m": None}
+        stats = {"seam_cells": 0, "seam_median_abs_m": None, "seam_median_m": None, "pass_cells": 0,
+                 "pass_median_abs_m": None}
         if not found.any():
             return stats
         ids = tv[found]
@@ -146,16 +150,22 @@ class Stitcher:
                     else tile.observed.cpu().numpy().reshape(-1)[ids].astype(bool))
         sums = self.sums
         both = (sums["w"][k] > OWNED) & sums["observed"][k] & observed & (w > OWNED)
-        if both.any():
-            diff = h[both] - sums["h"][k][both] / sums["w"][k][both]
-            stats.update(seam_cells=int(both.sum()), seam_median_abs_m=round(float(np.median(np.abs(diff))), 5),
+        seam = both & (sums["owner"][k] == (seam_with or -1))
+        if seam.any():
+            diff = h[seam] - sums["h"][k][seam] / sums["w"][k][seam]
+            stats.update(seam_cells=int(seam.sum()), seam_median_abs_m=round(float(np.median(np.abs(diff))), 5),
                          seam_median_m=round(float(np.median(diff)), 5))
+        other = both & ~seam
+        if other.any():
+            diff = h[other] - sums["h"][k][other] / sums["w"][k][other]
+            stats.update(pass_cells=int(other.sum()), pass_median_abs_m=round(float(np.median(np.abs(diff))), 5))
         rows = np.flatnonzero(found)  # the tile's per-vertex rows of these cells
         sums["w"][k] += w  # k holds each cell once: a tile's vertices are distinct cells
         sums["h"][k] += w * h
         sums["rgb"][k] += w[:, None] * tile.rgb.cpu().numpy()[rows]
         sums["sem"][k] += w[:, None] * tile.sem_logits.cpu().numpy()[rows]
         sums["observed"][k] |= observed & (w > OWNED)
+        sums["owner"][k] = np.where(w > OWNED, number, sums["owner"][k])
         if tile.samples is not None and len(tile.samples):
             self.samples.append(_owned_samples(tile.samples, s.grid, weight))
         return stats
@@ -167,6 +177,7 @@ class Stitcher:
             raise ValueError("no tile was added")
         sums, self.sums = self.sums, {}
         w = sums.pop("w")
+        sums.pop("owner")
         k = np.flatnonzero(w > 0)
         inv = 1.0 / w[k]
         cells = self.cells[k]  # sorted: the mesh's vertex order
