@@ -18,6 +18,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -50,10 +51,12 @@ def synth(seq: Path, frames: int, scale: float, poses: Path) -> float | None:
 
 def run(seq: Path, out: Path, sets: list[str]) -> dict:
     """``pavemap run`` in a child process; its metrics.json and peak RSS (GiB)."""
-    # mesh.resume off: a run folder of an earlier commit would otherwise lend its stage 1 (stamps hold the
-    # settings and the frames, not the code)
+    # A fresh folder: an earlier commit's run would lend its stages (their stamps hold the inputs and the
+    # settings, not the code), and a resumed run is no measurement.
+    if out.exists():
+        shutil.rmtree(out)
     cmd = ["/usr/bin/time", "-v", PAVEMAP, "run", str(seq), "-o", str(out), "--config", "kitti", "--overwrite",
-           "--set", "device=cpu", "--set", "mesh.resume=false", *sum((["--set", s] for s in sets), [])]
+           "--set", "device=cpu", *sum((["--set", s] for s in sets), [])]
     t = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t
