@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -33,6 +34,8 @@ def one(seq_dir: Path, run_dir: Path, view_range: float) -> dict:
     cfg = pavemap.load_config("kitti")
     cfg.mesh.view_range_m = view_range
     cfg.device = "cpu"
+    if run_dir.exists():  # a fresh run: the stage cache keys on inputs and settings, not on the code
+        shutil.rmtree(run_dir)
     t = time.perf_counter()
     res = pavemap.run(seq_dir, cfg, run_dir, overwrite=True, progress=False)
     ev = res.evaluation or {}
