@@ -144,3 +144,23 @@ def test_all_detections_filtered_gives_a_clear_report(tiny_seq, tmp_path):
     assert res.metrics["valid_detections"] == 0
     html = (tmp_path / "run" / "report.html").read_text().lower()
     assert "no defects" in html and "filter" in html
+
+
+def test_stage_keys_know_the_code_not_only_the_version(tmp_path):
+    """A stage done by other code is redone: the key holds a hash of the package's code, which an edit changes."""
+    from pavemap import __version__
+    from pavemap.run_folder import code_version, mesh_parts
+
+    pkg = tmp_path / "pkg"
+    (pkg / "configs").mkdir(parents=True)
+    (pkg / "a.py").write_text("x = 1\n")
+    (pkg / "configs" / "p.yaml").write_text("k: 1\n")
+    before = code_version(pkg)
+    (pkg / "a.py").write_text("x = 2\n")
+    code_version.cache_clear()
+    assert code_version(pkg) != before and before.startswith(f"{__version__}+")
+    (pkg / "notes.txt").write_text("not code")
+    assert code_version.__wrapped__(pkg) == code_version(pkg)
+    from pavemap.mesh import MeshConfig
+
+    assert mesh_parts("seq", MeshConfig())["version"] == code_version()  # the package's own, in every mesh key

@@ -2,7 +2,8 @@
 
 A stage leaves a stamp ``.stages/<stage>.json`` when it finishes and ``.stages/<stage>.started.json``
 when it begins, each holding the *parts* its result depends on (the sequence's hash, the config
-fields that change the result, the files it reads, the pavemap version) and their hash, the key.
+fields that change the result, the files it reads, the pavemap code: :func:`code_version`) and their hash,
+the key.
 A rerun reuses a finished stage whose key matches; an interrupted stage resumes from its
 checkpoint only when the started stamp matches, so the result is the one an uninterrupted run
 gives; otherwise the stage is redone and the log says which parts changed.
@@ -11,6 +12,7 @@ gives; otherwise the stage is redone and the log says which parts changed.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import time
@@ -57,6 +59,19 @@ def hash_sequence(seq: Sequence) -> str:
     return h.hexdigest()[:16]
 
 
+@functools.cache
+def code_version(root: Path | None = None) -> str:
+    """The pavemap version and a hash of the package's own code and shipped configs (``*.py``, ``*.yaml`` under
+    ``root``, the package by default): a stage done by other code is redone, not reused (the version alone stays
+    the same between commits; a rerun of the long-drive bench into an old folder once reused an earlier commit's
+    meshes)."""
+    root = Path(__file__).resolve().parent if root is None else Path(root)
+    h = hashlib.sha256()
+    for f in sorted(q for pat in ("*.py", "*.yaml") for q in root.rglob(pat)):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
+    return f"{__version__}+{h.hexdigest()[:12]}"
+
+
 def hash_parts(*parts: object) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -79,7 +94,7 @@ def path_hash(path: str | Path | None) -> str | None:
 def mesh_parts(seq_key: str, mesh_cfg: object) -> dict:
     """What stage 1's result depends on: the sequence, every result-changing mesh field, the version."""
     cfg = {k: v for k, v in dataclasses.asdict(mesh_cfg).items() if k not in MESH_NOT_RESULT}  # type: ignore[call-overload]
-    return {"sequence": seq_key, "config": cfg, "version": __version__}
+    return {"sequence": seq_key, "config": cfg, "version": code_version()}
 
 
 def detect_parts(seq_key: str, detector: DetectorConfig, device: str, seq: Sequence) -> dict:
@@ -89,7 +104,7 @@ def detect_parts(seq_key: str, detector: DetectorConfig, device: str, seq: Seque
     source = None
     if detector.backend == "file":
         source = detector.file if detector.file else (seq.root / DETECTIONS_FILE if seq.root else None)
-    return {"sequence": seq_key, "config": dataclasses.asdict(detector), "version": __version__,
+    return {"sequence": seq_key, "config": dataclasses.asdict(detector), "version": code_version(),
             "weights": path_hash(detector.weights) if detector.backend == "yolo" else None,
             "class_map": path_hash(detector.class_map) if detector.backend == "yolo" else None,
             "source": path_hash(source), "device": device if detector.backend == "yolo" else None}
@@ -202,5 +217,5 @@ def keep_on_failure(rel: str) -> bool:
     return any(rel == k or (k.endswith("/") and rel.startswith(k)) for k in RESUMABLE)
 
 
-__all__ = ["COMPLETE", "RUN_FILE", "STAGES", "Stages", "detect_parts", "hash_parts", "hash_sequence",
+__all__ = ["COMPLETE", "RUN_FILE", "STAGES", "Stages", "code_version", "detect_parts", "hash_parts", "hash_sequence",
            "keep_on_failure", "legacy_run", "mesh_parts", "path_hash", "prepare_out", "why_changed"]

@@ -104,7 +104,11 @@ def tile_stamp(conf: dict, plan: dict, seq: Sequence, positions: tuple[int, ...]
 
 
 def stamp_config(cfg: MeshConfig) -> dict:
-    return {k: v for k, v in cfg.to_dict().items() if k not in ("device", "threads", "resume")}
+    """The settings a tile depends on, and the code that made it (:func:`pavemap.run_folder.code_version`)."""
+    from pavemap.run_folder import code_version
+
+    return {**{k: v for k, v in cfg.to_dict().items() if k not in ("device", "threads", "resume")},
+            "code": code_version()}
 
 
 def tile_done(folder: Path, stamp: str) -> bool:
