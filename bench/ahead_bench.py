@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -21,7 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import machine_entry, write_results  # noqa: E402
+from common import fresh_run_folder, machine_entry, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "ahead.json"
@@ -34,8 +33,7 @@ def one(seq_dir: Path, run_dir: Path, view_range: float) -> dict:
     cfg = pavemap.load_config("kitti")
     cfg.mesh.view_range_m = view_range
     cfg.device = "cpu"
-    if run_dir.exists():  # a fresh run: the stage cache keys on inputs and settings, not on the code
-        shutil.rmtree(run_dir)
+    fresh_run_folder(run_dir)  # a fresh run, not a resumed one
     t = time.perf_counter()
     res = pavemap.run(seq_dir, cfg, run_dir, overwrite=True, progress=False)
     ev = res.evaluation or {}

@@ -54,3 +54,17 @@ def no_depth_copy(src: Path, dst: Path) -> Path:
                 v["depth"] = None
         (dst / "sequence.json").write_text(json.dumps(d))
     return dst
+
+
+def fresh_run_folder(out: Path) -> None:
+    """Empty a run folder of an earlier benchmark run, deleting only what pavemap wrote there (a rerun into it
+    would lend its stages and be no measurement); stops when other files remain."""
+    from pavemap.io.owned import read_owner, remove_owned
+
+    if not out.exists():
+        return
+    owner = read_owner(out)
+    left = remove_owned(out, owner) if owner is not None else sorted(p.name for p in out.iterdir())
+    if left:
+        raise SystemExit(f"{out}: holds files pavemap did not write ({', '.join(left[:5])}); move them or pick "
+                         "another --data folder")

@@ -18,7 +18,6 @@ import argparse
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -28,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import machine_entry, write_results  # noqa: E402
+from common import fresh_run_folder, machine_entry, write_results  # noqa: E402
 from pavemap.mesh.config import MeshConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,8 +52,7 @@ def run(seq: Path, out: Path, sets: list[str]) -> dict:
     """``pavemap run`` in a child process; its metrics.json and peak RSS (GiB)."""
     # A fresh folder: an earlier commit's run would lend its stages (their stamps hold the inputs and the
     # settings, not the code), and a resumed run is no measurement.
-    if out.exists():
-        shutil.rmtree(out)
+    fresh_run_folder(out)
     cmd = ["/usr/bin/time", "-v", PAVEMAP, "run", str(seq), "-o", str(out), "--config", "kitti", "--overwrite",
            "--set", "device=cpu", *sum((["--set", s] for s in sets), [])]
     t = time.perf_counter()

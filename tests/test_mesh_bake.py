@@ -243,18 +243,27 @@ def test_initial_semantic_bake_labels_the_mesh_without_training(seq):
 
 def test_a_hit_a_hair_outside_its_triangle_votes_nothing_against_a_vertex():
     """Barycentric weights of -0.003 (rounding at a triangle's edge, seen on KITTI-00) once left a vertex whose
-    only votes summed to ~0 with a colour of 1e6 and broke the views' exposure fit; now they count as 0."""
+    only votes summed to ~0 with a colour of 1e6 and broke the views' exposure fit; the hits now carry none."""
+    from pavemap.geometry import hits_to_rayhit
+    from pavemap.geometry.heightfield import HitCells
     from pavemap.mesh.bake import _mean_colours, batch_hits
     from pavemap.mesh.data import PixelPool, ViewKey
 
+    hf = HeightField.plane(0.0, 0.0, 1.0, 3, 3, 0.0)
+    # two rays straight down into cell (0, 0): one well inside its lower triangle, one 3 mm across the diagonal
+    # but assigned to the upper triangle, as a march that rounds the other way would
+    o = torch.tensor([[0.7, 0.2, 2.0], [0.503, 0.497, 2.0]], dtype=torch.float64)
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+    z = torch.zeros(2, dtype=torch.long)
+    hit = hits_to_rayhit(hf, o, d, HitCells(torch.arange(2), torch.full((2,), 2.0, dtype=torch.float64), z, z,
+                                            torch.tensor([True, False])))
+    assert float(hit.bary.min()) >= 0 and torch.allclose(hit.bary.sum(1), torch.ones(2, dtype=torch.float64))
+    stray = int(hit.vertex_ids[1, 2])  # the upper triangle's third vertex, which the second hit lies beyond
+    assert stray not in hit.vertex_ids[0].tolist() and float(hit.bary[1, 2]) == 0.0
     n = 2
     pool = PixelPool([ViewKey(0, "c")], torch.eye(3)[None], torch.eye(4)[None], torch.zeros(n, dtype=torch.long),
                      torch.zeros(n, 2), torch.tensor([[200, 200, 200], [100, 100, 100]], dtype=torch.uint8),
                      torch.full((n,), -1, dtype=torch.long), torch.ones(n, dtype=torch.bool), None)
-    vid = torch.tensor([[0, 1, 2], [0, 1, 3]])  # vertex 3 is reached only by the second pixel's stray vote
-    w = torch.tensor([[0.5, 0.5, 0.0], [0.4, 0.6030, -0.0030]])
-    h = batch_hits(pool, slice(0, n), torch.arange(n), vid, w)
-    assert float(h.w.min()) >= 0 and torch.allclose(h.w.sum(1), torch.ones(n))
-    rgb, support = _mean_colours([h], 4, None, torch.device("cpu"))
-    assert float(support[3]) == 0 and torch.isfinite(rgb).all() and float(rgb.abs().max()) <= 1.0
-    assert rgb[0, 0].item() == pytest.approx((0.5 * 200 + 0.4 * 100 / 1.003) / (0.5 + 0.4 / 1.003) / 255, abs=1e-6)
+    h = batch_hits(pool, slice(0, n), torch.arange(n), hit.vertex_ids, hit.bary)
+    rgb, support = _mean_colours([h], hf.nx * hf.ny, None, torch.device("cpu"))
+    assert float(support[stray]) == 0 and torch.isfinite(rgb).all() and float(rgb.abs().max()) <= 1.0

@@ -416,6 +416,10 @@ def hits_to_rayhit(hf: HeightField, origins: torch.Tensor, dirs: torch.Tensor, c
     slope = torch.where(slope.abs() > 1e-12, slope, torch.full_like(slope, -1e-12))
     lam = lam0 - g0 / slope
     _, bary, _, _, _, _ = _triangle(hf, u_fn(lam), v_fn(lam), cell=(i, j, lower))
+    # The step can leave a hit a hair outside its triangle (weights of -0.003 seen): no vertex takes a negative
+    # share, else a vertex reached only by such votes divides by a support near 0 (bakes: colours of 1e6).
+    bary = bary.clamp_min(0.0)
+    bary = bary / bary.sum(-1, keepdim=True)
     pts = o + lam[:, None] * d
 
     hit = torch.zeros(n, dtype=torch.bool, device=origins.device)

@@ -66,13 +66,8 @@ class Hits(NamedTuple):
 
 
 def batch_hits(pool: PixelPool, sl: slice, rows: torch.Tensor, vid: torch.Tensor, w: torch.Tensor) -> Hits:
-    """One :func:`pool_hits` batch as the bake keeps it. A hit that rounding puts a hair outside its triangle
-    has a barycentric weight slightly below 0 (-0.003 seen): a pixel never votes against a vertex, and a vertex
-    reached only by such votes would divide by a support near 0 (colours of 1e6 seen on KITTI-00), so the
-    weights are clipped at 0 and renormalised."""
-    w = w.float().clamp_min(0.0)
-    w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
-    return Hits(vid, w, pool.rgb[sl][rows], pool.view[sl][rows], pool.channel[sl][rows])
+    """One :func:`pool_hits` batch as the bake keeps it."""
+    return Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows], pool.channel[sl][rows])
 
 
 def march_pool(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float,

@@ -131,12 +131,11 @@ def plan_segments(traj_xy: np.ndarray, length_m: float, overlap_m: float, revisi
     again = revisited_frames(t, revisit_m, band_m, 2 * overlap_m) if length_m > 0 else np.zeros(len(t), bool)
     bounds = [0.5 * (s[j] + s[j + 1]) for j in np.flatnonzero(np.diff(again.astype(np.int8)) != 0)]
     edges = [-math.inf, *bounds, math.inf]
-    runs = [(lo, hi) for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True))
-            if k % 2 == int(again[0])]  # the stretches of new road (the drive starts on one)
+    pieces = list(zip(edges[:-1], edges[1:], strict=True))
+    runs = pieces[0::2]  # new road and revisits alternate; the first frame has no earlier pass to revisit
     share = np.zeros(len(t))
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        if (lo, hi) not in runs:
-            share = np.maximum(share, core_ramp(s, (lo, hi), overlap_m))
+    for piece in pieces[1::2]:
+        share = np.maximum(share, core_ramp(s, piece, overlap_m))
     cores: list[tuple[float, float]] = []
     for lo, hi in runs:
         span = min(hi, s[-1]) - max(lo, 0.0)

@@ -151,14 +151,13 @@ class Stitcher:
         sums = self.sums
         both = (sums["w"][k] > OWNED) & sums["observed"][k] & observed & (w > OWNED)
         seam = both & (sums["owner"][k] == (seam_with or -1))
-        if seam.any():
-            diff = h[seam] - sums["h"][k][seam] / sums["w"][k][seam]
-            stats.update(seam_cells=int(seam.sum()), seam_median_abs_m=round(float(np.median(np.abs(diff))), 5),
-                         seam_median_m=round(float(np.median(diff)), 5))
-        other = both & ~seam
-        if other.any():
-            diff = h[other] - sums["h"][k][other] / sums["w"][k][other]
-            stats.update(pass_cells=int(other.sum()), pass_median_abs_m=round(float(np.median(np.abs(diff))), 5))
+        for name, cells in (("seam", seam), ("pass", both & ~seam)):
+            if cells.any():
+                diff = h[cells] - sums["h"][k][cells] / sums["w"][k][cells]
+                stats.update({f"{name}_cells": int(cells.sum()),
+                              f"{name}_median_abs_m": round(float(np.median(np.abs(diff))), 5)})
+                if name == "seam":
+                    stats["seam_median_m"] = round(float(np.median(diff)), 5)
         rows = np.flatnonzero(found)  # the tile's per-vertex rows of these cells
         sums["w"][k] += w  # k holds each cell once: a tile's vertices are distinct cells
         sums["h"][k] += w * h
