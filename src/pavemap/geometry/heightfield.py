@@ -1,12 +1,11 @@
 """The road surface as a height field on a regular grid, and exact ray / surface intersection.
 
 Triangulation (DESIGN, "The height-field renderer"): every cell ``(i, j)`` is split along the
-diagonal from vertex ``(i, j)`` to ``(i+1, j+1)``. With local coordinates ``fx, fy`` in the cell:
+diagonal from vertex ``(i, j)`` to ``(i+1, j+1)``; a triangle exists only where all three of its vertices
+are ``valid`` (the trajectory crop). With local coordinates ``fx, fy`` in the cell:
 
 - lower triangle (``fx >= fy``): vertices ``(i,j), (i+1,j), (i+1,j+1)``, weights ``(1-fx, fx-fy, fy)``
 - upper triangle (``fx < fy``):  vertices ``(i,j), (i+1,j+1), (i,j+1)``, weights ``(1-fy, fx, fy-fx)``
-
-A triangle exists only where all three of its vertices are ``valid`` (the trajectory crop).
 
 Intersection of a ray ``p(lam) = o + lam d`` with the surface solves ``g(lam) = z(lam) - h(xy(lam)) = 0``
 for the first root: a march along the ray's ground track at half-cell steps, restricted to the
@@ -399,7 +398,7 @@ def hits_to_rayhit(hf: HeightField, origins: torch.Tensor, dirs: torch.Tensor, c
 
     At a converged root its value is ``lam0`` and its derivative is that of the root (implicit
     function theorem), so lam, points and barycentric weights are differentiable w.r.t. ``hf.heights``
-    (only the three vertices of each hit triangle are read), ``origins`` and ``dirs``.
+    (only the three vertices of each hit triangle are read), ``origins`` and ``dirs``. Weights are clipped at 0.
     """
     n = origins.shape[0]
     idx, lam0, i, j, lower = cells.idx, cells.lam0, cells.i, cells.j, cells.lower
@@ -416,10 +415,7 @@ def hits_to_rayhit(hf: HeightField, origins: torch.Tensor, dirs: torch.Tensor, c
     slope = torch.where(slope.abs() > 1e-12, slope, torch.full_like(slope, -1e-12))
     lam = lam0 - g0 / slope
     _, bary, _, _, _, _ = _triangle(hf, u_fn(lam), v_fn(lam), cell=(i, j, lower))
-    # The step can leave a hit a hair outside its triangle (weights of -0.003 seen): no vertex takes a negative
-    # share, else a vertex reached only by such votes divides by a support near 0 (bakes: colours of 1e6).
-    bary = bary.clamp_min(0.0)
-    bary = bary / bary.sum(-1, keepdim=True)
+    bary = (b := bary.clamp_min(0.0)) / b.sum(-1, keepdim=True)  # -0.003 seen: a bake's votes
     pts = o + lam[:, None] * d
 
     hit = torch.zeros(n, dtype=torch.bool, device=origins.device)
