@@ -154,11 +154,12 @@ def test_range_mask_is_the_per_pixel_ray_test():
     within [min_range, max_range] (skewed intrinsics, tilted and rolled cameras, one looking up)."""
     from scipy.spatial.transform import Rotation
 
+    from pavemap.geometry.range_mask import range_mask_numpy
     from pavemap.mesh.ground_points import _range_mask
     from pavemap.types import Camera
 
     cam = Camera("c", 64, 40, np.array([[50.0, 0.7, 31.0], [0.0, 48.0, 19.5], [0.0, 0.0, 1.0]]))
-    cfg = GroundConfig()
+    cfg = GroundConfig(max_range=12.0, far_range=25.0)  # ranges that this small image's rows resolve
     v, u = np.mgrid[0:40, 0:64]
     rays = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3).astype(float) @ np.linalg.inv(cam.K).T
     forward = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float).T  # camera z along world x
@@ -173,9 +174,16 @@ def test_range_mask_is_the_per_pixel_ray_test():
         with np.errstate(divide="ignore", invalid="ignore"):
             ground = cfg.prior_height / -d[:, 2] * np.linalg.norm(d[:, :2], axis=1)
         want = (below & (ground >= cfg.min_range) & (ground <= cfg.max_range)).reshape(40, 64)
-        got = _range_mask(cam, T, cfg)
+        got = _range_mask(cam, T, cfg)  # the compiled kernel
+        ref = range_mask_numpy(cam.K, T[:3, :3], (40, 64), cfg.prior_height, cfg.horizon_margin_deg,
+                               cfg.min_range, cfg.max_range)
         assert got.shape == (40, 64) and got.dtype == bool
         assert np.array_equal(got, want), int((got != want).sum())
+        assert np.array_equal(ref, want), int((ref != want).sum())
+        # the far pass: its own horizon margin and range
+        below = d[:, 2] < -np.sin(np.radians(cfg.far_horizon_deg))
+        far = (below & (ground >= 0.8 * cfg.max_range) & (ground <= cfg.far_range)).reshape(40, 64)
+        assert np.array_equal(_range_mask(cam, T, cfg, far=True), far)
         seen += int(want.sum())
     assert 0 < seen < 4 * 64 * 40
 
@@ -187,7 +195,8 @@ def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
     import cv2
 
     from pavemap.geometry import patch_ncc
-    from pavemap.mesh.ground_points import _load, _Sweep, _ViewData
+    from pavemap.mesh.ground_points import _load
+    from pavemap.mesh.ground_sweep import Sweep, ViewData
 
     assert patch_ncc.available(), "numba is a dependency of the package (pyproject.toml)"
     monkeypatch.delenv("PAVEMAP_NCC", raising=False)  # the compiled kernel, not the reference, is under test
@@ -200,12 +209,12 @@ def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
     vds = []
     for pos in (0, 1):
         v = seq.frames[pos].views["CAM_FRONT"]
-        vd = _ViewData((seq.frames[pos].index, "CAM_FRONT"), pos, seq.cameras["CAM_FRONT"], v.T_world_cam)
+        vd = ViewData((seq.frames[pos].index, "CAM_FRONT"), pos, seq.cameras["CAM_FRONT"], v.T_world_cam)
         _load(seq, vd, v, cfg, *luts)
         vds.append(vd)
     corners = cv2.goodFeaturesToTrack(vds[0].grey, 200, cfg.quality, cfg.min_distance,
                                       mask=vds[0].mask.astype(np.uint8)).reshape(-1, 2).astype(np.float64)
-    sw = _Sweep(vds[0], vds[1], corners, cfg)
+    sw = Sweep(vds[0], vds[1], corners, cfg)
     rows = np.arange(len(corners))
     tau = np.broadcast_to(np.linspace(-cfg.sweep_range, cfg.sweep_range, 60), (len(rows), 60))
     for sparse in (True, False):
@@ -225,3 +234,50 @@ def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
     b = find_ground_points(seq)
     assert abs(len(a) - len(b)) <= 0.03 * len(b)
     assert abs(np.median(a.points[:, 2]) - np.median(b.points[:, 2])) < 0.002
+
+
+def test_far_pass_observes_the_road_beyond_the_last_frame(drive, points):
+    """The far pass adds points on the road ahead of the drive's end, beyond the near pass's reach, three views
+    each and on the true surface; it changes nothing elsewhere (its points are kept beyond the ends only)."""
+    from pavemap.mesh.init_surface import travel_direction
+
+    seq, grid, heights = drive
+    near = find_ground_points(seq, GroundConfig(far_range=0.0))
+    traj = seq.trajectory()[:, :2]
+    out = travel_direction(traj, -1)
+
+    def ahead(p):
+        return (p.points[:, :2] - traj[-1]) @ out
+
+    assert points.stats["far_pairs"] > 0 and near.stats["far_pairs"] == 0
+    beyond = ahead(points) > ahead(near).max()
+    assert beyond.sum() >= 10, beyond.sum()
+    assert ahead(points).max() >= ahead(near).max() + 5.0
+    err = points.points[beyond, 2] - sample_grid(grid, heights, points.points[beyond, :2])
+    assert abs(np.nanmedian(err)) <= 0.05 and (points.n_views[beyond] >= 3).all()
+    # behind the end, the points are the near pass's
+    mine = {tuple(np.round(p, 6)) for p in points.points[ahead(points) <= 0]}
+    theirs = {tuple(np.round(p, 6)) for p in near.points[ahead(near) <= 0]}
+    assert len(mine ^ theirs) <= 0.02 * len(theirs)
+
+
+def test_corners_in_the_mask_rows_are_the_full_images(drive):
+    """Corners found in the rows the mask spans are those of the whole image (the far mask is a thin band)."""
+    import cv2
+
+    from pavemap.mesh.ground_points import _corners, _load
+    from pavemap.mesh.ground_sweep import ViewData
+
+    seq = drive[0]
+    cfg = GroundConfig()
+    v = seq.frames[3].views["CAM_FRONT"]
+    vd = ViewData((3, "CAM_FRONT"), 3, seq.cameras["CAM_FRONT"], v.T_world_cam)
+    _load(seq, vd, v, cfg, seq.class_lut("ground"), seq.class_lut("road"), far=True)
+    for mask in (vd.mask, vd.far_mask):
+        assert mask.any(1).sum() < 0.9 * len(mask)  # the crop is a real one
+        full = cv2.goodFeaturesToTrack(vd.grey, 150, cfg.quality, cfg.min_distance, mask=mask.astype(np.uint8))
+        got = _corners(vd.grey, mask, 150, cfg)
+        assert got is not None and len(got) == len(full) > 10
+        assert np.array_equal(np.sort(got.view("f8,f8"), axis=0), np.sort(full.reshape(-1, 2).astype(np.float64)
+                                                                          .view("f8,f8"), axis=0))
+    assert _corners(vd.grey, np.zeros_like(vd.mask), 150, cfg) is None

@@ -123,3 +123,29 @@ def test_poses_with_a_wrong_scale_are_named(drive):
     assert any(n.startswith("geometry not observable") for n in notes), notes
     warn = [n for n in notes if "wrong scale" in n]
     assert warn and geo.cam_h > 1.4 * drive[3] and f"(x{geo.cam_h / drive[3]:.2f})" in warn[0], notes
+
+
+def test_ground_points_hand_their_images_to_the_pool(drive, monkeypatch):
+    """Without depth, every training image is decoded once: the ground points read it and the pool takes it
+    from them, pixel for pixel what the pool decodes on its own."""
+    import pavemap.mesh.data as data_mod
+    import pavemap.mesh.ground_points as gp_mod
+    from pavemap.io.sequence import load_rgb
+
+    seq = drive[0]
+    calls: list[str] = []
+
+    def counted(path):
+        calls.append(str(path))
+        return load_rgb(path)
+
+    monkeypatch.setattr(data_mod, "load_rgb", counted)
+    monkeypatch.setattr(gp_mod, "load_rgb", counted)
+    cfg = _cfg()
+    notes: list[str] = []
+    shared = prepare(seq, cfg, torch.device("cpu"), notes.append)
+    assert shared.gp is not None and shared.gp.observable
+    assert len(calls) == len(set(calls)) == len(seq.frames)  # training and held-out views, once each
+    own = prepare(seq, dataclasses.replace(cfg, ground_points="off"), torch.device("cpu"), notes.append)
+    assert own.gp is None
+    assert torch.equal(shared.pool.rgb, own.pool.rgb) and torch.equal(shared.pool.uv, own.pool.uv)

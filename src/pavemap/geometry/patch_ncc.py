@@ -1,4 +1,4 @@
-"""The plane-sweep NCC score of :class:`pavemap.mesh.ground_points._Sweep`: a compiled kernel and its numpy
+"""The plane-sweep NCC score of :class:`pavemap.mesh.ground_sweep.Sweep`: a compiled kernel and its numpy
 reference.
 
 :func:`sweep_scores_numpy` is the reference. It builds every hypothesis's warped patch as arrays of (rows,

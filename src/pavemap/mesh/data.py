@@ -96,9 +96,28 @@ def _depth_samples(dep: np.ndarray, size: tuple[int, int], scale: float) -> tupl
     return out, uv
 
 
+class ScaledImages:
+    """Views' RGB images handed from an earlier reader to :func:`build_pool` at the pool's scale, so that no
+    image is decoded twice (the ground points read every training view at full resolution; a PNG costs
+    ~10 ms). Holds (H, W, 3) uint8 at ``scale`` per image path until taken."""
+
+    def __init__(self, seq: Sequence, scale: float):
+        self.seq, self.scale = seq, scale
+        self.rgb: dict[str, np.ndarray] = {}
+
+    def put(self, view: View, rgb: np.ndarray) -> None:
+        """Keep ``rgb`` (H, W, 3) uint8, the full-resolution image of ``view``, resized to the pool's scale."""
+        cam = self.seq.cameras[view.camera].scaled(self.scale)
+        self.rgb[view.image] = _resize(rgb, (cam.width, cam.height), nearest=False)
+
+    def take(self, view: View) -> np.ndarray | None:
+        return self.rgb.pop(view.image, None)
+
+
 def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, channel_lut: np.ndarray,
-               use_semantics: bool, use_depth: bool) -> PixelPool:
-    """Load, resize and flatten views. channel_lut (256,) int: class id -> semantic channel (-1 unknown)."""
+               use_semantics: bool, use_depth: bool, images: ScaledImages | None = None) -> PixelPool:
+    """Load, resize and flatten views. channel_lut (256,) int: class id -> semantic channel (-1 unknown).
+    ``images``: views already read at this ``scale``, taken from there instead of decoded again."""
     movable, sky, road = seq.class_lut("movable"), seq.class_lut("sky"), seq.class_lut("road")
     ground = seq.class_lut("ground")
     keys, K, T = [], [], []
@@ -106,7 +125,9 @@ def build_pool(seq: Sequence, views: list[tuple[int, View]], scale: float, chann
     for vi, (frame_index, v) in enumerate(views):
         cam = seq.cameras[v.camera].scaled(scale)
         size = (cam.width, cam.height)
-        rgb = _resize(load_rgb(seq.path(v.image)), size, nearest=False)
+        rgb = images.take(v) if images is not None and images.scale == scale else None
+        if rgb is None or rgb.shape[:2] != size[::-1]:
+            rgb = _resize(load_rgb(seq.path(v.image)), size, nearest=False)
         if use_semantics and v.semantics:
             lab = _resize(load_semantics(seq.path(v.semantics)), size, nearest=True)
             keep = ~(movable[lab] | sky[lab])

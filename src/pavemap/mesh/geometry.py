@@ -27,18 +27,11 @@ from pavemap.geometry.triangulate import SurfaceCheck, check_height_field, local
 from pavemap.geometry.triangulate import camera_height as height_above
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool
-from pavemap.mesh.ground_points import (
-    GroundConfig,
-    GroundPoints,
-    estimate_camera_height,
-    find_ground_points,
-)
+from pavemap.mesh.ground_points import GroundPoints, estimate_camera_height
 from pavemap.mesh.init_surface import camera_height as searched_height
 from pavemap.mesh.relief import ReliefFit
-from pavemap.mesh.setup import TrainData, Warn
+from pavemap.mesh.setup import MIN_POINTS, TrainData, Warn
 from pavemap.types import Sequence
-
-MIN_POINTS = 50  # fewer triangulated ground points: geometry not observable
 
 
 @dataclass
@@ -81,14 +74,9 @@ def find_geometry(seq: Sequence, data: TrainData, cfg: MeshConfig, warn: Warn) -
         notes.append(msg)
         warn(msg)
 
-    gp = None
-    if cfg.ground_points == "always" or (cfg.ground_points == "auto" and not data.use_depth):
-        gcfg = GroundConfig(prior_height=cfg.camera_height, scale=cfg.ground_points_scale,
-                            max_corners=cfg.ground_points_corners)
-        sub = training_sequence(seq, data)
-        gp = find_ground_points(sub, gcfg, min_points=MIN_POINTS)
-        if not gp.observable and data.use_depth:
-            note(f"ground points not observable (the depth layer gives the geometry): {gp.reason}")
+    gp = data.gp  # triangulated by prepare (before the pool, which takes the images they decoded)
+    if gp is not None and not gp.observable and data.use_depth:
+        note(f"ground points not observable (the depth layer gives the geometry): {gp.reason}")
     check = None
     if gp is not None and gp.observable and cfg.check_holdout_every >= 2 and len(gp) >= 2 * MIN_POINTS:
         gp, check = gp.split(cfg.check_holdout_every)

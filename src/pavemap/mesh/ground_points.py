@@ -3,9 +3,11 @@ they imply: the road's geometry when there is no depth sensor (issue 12).
 
 Each reference view's corners on the ground are matched into later views (the same camera's next
 ``max_gap`` frames and other cameras of the rig where their ground overlaps) by a *patch sweep* along the
-epipolar line: every depth hypothesis of a corner's ray puts a horizontal plane through that point, the
-plane's homography warps the corner's patch into the partner, and zero-mean NCC scores it (coarse 2 px
-steps over the whole depth range, then 1 px, then sub-pixel parabola fits). It is exact for a locally flat
+epipolar line (:mod:`pavemap.mesh.ground_sweep`): every depth hypothesis of a corner's ray puts a horizontal
+plane through that point, the plane's homography warps the corner's patch into the partner, and zero-mean NCC
+scores it (coarse 2 px steps over the whole depth range, then 1 px, then sub-pixel parabola fits). A far pass
+matches the road 20-60 m ahead of the path's ends into partners 2 and 4 m on, three views a point, so the
+mesh over the road the last frames see is observed too (issue 12 item 4). It is exact for a locally flat
 road, immune to exposure changes between frames, and rejects patches whose NCC peak is flat or repeated
 along the line (an edge running with the epipolar line: lane markings in forward motion; why not pyramidal
 LK: README, Geometry without LiDAR). The prior camera height only centres the search; triangulation
@@ -16,28 +18,29 @@ sparse depth, self-check) is :mod:`pavemap.mesh.geometry`.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
-from pavemap.geometry import patch_ncc
+from pavemap.geometry.range_mask import range_mask
 from pavemap.geometry.triangulate import (
     HeightEstimate,
     agrees_with_neighbours,
     camera_height,
     local_ground,
-    parabola_vertex,
     plane_homography,
-    second_peak,
     triangulate_tracks,
     within_corridor,
 )
 from pavemap.io.egomask import ego_mask_at
 from pavemap.io.sequence import load_rgb, load_semantics
+from pavemap.mesh.ground_sweep import Z_UP, Patches, ViewData, sweep_match
+from pavemap.mesh.init_surface import travel_direction
 from pavemap.types import Camera, Sequence, View
 
-Z_UP = np.array([0.0, 0.0, 1.0])
+RgbHook = Callable[[View, np.ndarray], None]
 
 
 @dataclass
@@ -67,6 +70,14 @@ class GroundConfig:
     min_angle_deg: float = 1.0
     min_views: int = 2
     neighbour_m: float = 0.15  # drop points this far off the robust surface of their neighbours
+    # the far pass: every ``far_every``-th view matches corners between 0.8 x max_range and far_range into the
+    # first later view of its camera ``far_baseline_m`` away, so the road ahead of a drive's end is observed
+    far_range: float = 60.0  # m (0: no far pass)
+    far_baseline_m: float = 4.0
+    far_every: int = 2
+    far_corners: int = 150
+    far_max_gap: int = 15  # frames
+    far_horizon_deg: float = 1.5  # the far pass's horizon margin (3 degrees end the road 31 m ahead of 1.65 m)
     corridor_m: float = 8.0  # without semantics: ground must lie this close to the trajectory
     use_semantics: bool = True
 
@@ -116,43 +127,28 @@ class GroundPoints:
         return self.subset(~held), self.subset(held)
 
 
-@dataclass
-class _ViewData:
-    key: tuple[int, str]
-    pos: int
-    cam: Camera  # at the matching scale
-    T: np.ndarray
-    grey: np.ndarray | None = None  # uint8 (corners)
-    img: np.ndarray | None = None  # float32, lightly blurred (what the sweep samples)
-    mask: np.ndarray | None = None  # candidate ground pixels
-    label_ok: np.ndarray | None = None  # semantic ground (None without semantics)
-    road: np.ndarray | None = None
+def _range_mask(cam: Camera, T: np.ndarray, cfg: GroundConfig, far: bool = False) -> np.ndarray:
+    """(H, W) bool: pixels below the horizon margin whose ray meets the prior plane within the range
+    (``far``: the far pass's margin and range)."""
+    margin = cfg.far_horizon_deg if far else cfg.horizon_margin_deg
+    lo, hi = (0.8 * cfg.max_range, cfg.far_range) if far else (cfg.min_range, cfg.max_range)
+    return range_mask(cam.K, T[:3, :3], (cam.height, cam.width), cfg.prior_height, margin, lo, hi)
 
 
-def _range_mask(cam: Camera, T: np.ndarray, cfg: GroundConfig) -> np.ndarray:
-    """(H, W) bool: pixels below the horizon whose ray meets the prior plane within the range (row and column
-    terms broadcast: 4x faster than an (H, W, 3) ray array per view, 8.7 s of a nuScenes-like drive's setup)."""
-    R = T[:3, :3]
-    y = ((np.arange(cam.height) - cam.K[1, 2]) / cam.K[1, 1])[:, None]  # (H, 1)
-    x = (np.arange(cam.width)[None, :] - cam.K[0, 2] - cam.K[0, 1] * y) / cam.K[0, 0]  # (H, W)
-    dx, dy, dz = (R[k, 0] * x + (R[k, 1] * y + R[k, 2]) for k in range(3))
-    horiz = np.sqrt(dx * dx + dy * dy)
-    below = dz < -np.sin(np.radians(cfg.horizon_margin_deg)) * np.sqrt(horiz * horiz + dz * dz)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dist = cfg.prior_height / -dz * horiz
-    return below & (dist >= cfg.min_range) & (dist <= cfg.max_range)
-
-
-def _load(seq: Sequence, vd: _ViewData, view: View, cfg: GroundConfig, ground_lut, road_lut) -> None:
+def _load(seq: Sequence, vd: ViewData, view: View, cfg: GroundConfig, ground_lut, road_lut, far: bool = False,
+          on_rgb: RgbHook | None = None) -> None:
     cam = vd.cam
     size = (cam.width, cam.height)
-    grey = cv2.cvtColor(load_rgb(seq.path(view.image)), cv2.COLOR_RGB2GRAY)
+    rgb = load_rgb(seq.path(view.image))
+    if on_rgb is not None:
+        on_rgb(view, rgb)
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     if grey.shape[::-1] != size:
         grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
     # a light blur makes bilinear samples at any sub-pixel phase alike, else NCC peaks lock onto whole pixels
     # (an image pyramid for the coarse search was tried: the road's fine texture is gone two levels up)
     vd.img = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 0.8)
-    mask = _range_mask(cam, vd.T, cfg)
+    mask = np.ones((cam.height, cam.width), bool)
     if cfg.use_semantics and view.semantics:
         lab = load_semantics(seq.path(view.semantics))
         if lab.shape[::-1] != size:
@@ -163,126 +159,15 @@ def _load(seq: Sequence, vd: _ViewData, view: View, cfg: GroundConfig, ground_lu
         mask &= vd.label_ok
     if (ego := ego_mask_at(seq, view.camera, size[0], size[1])) is not None:  # the bonnet moves with the camera
         mask &= ~cv2.dilate(ego.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
-    vd.grey, vd.mask = grey, mask
-
-
-# ---------------------------------------------------------------------------- the patch sweep
-
-
-class _Sweep:
-    """One (reference a, partner b) pair for N corners (N, 2). Hypotheses are log depths ``tau`` of a
-    corner's ray relative to the prior plane's depth ``lam0``."""
-
-    def __init__(self, a: _ViewData, b: _ViewData, c: np.ndarray, cfg: GroundConfig):
-        Ka, Kb = a.cam.K, b.cam.K
-        r = cfg.patch // 2
-        dv, du = np.mgrid[-r:r + 1, -r:r + 1]
-        off = np.stack([du.ravel(), dv.ravel()], 1).astype(np.float64)
-        Ra, Rb = a.T[:3, :3], b.T[:3, :3]
-        R_ba, t_ba = Rb.T @ Ra, Rb.T @ (a.T[:3, 3] - b.T[:3, 3])
-        n_a = Ra.T @ Z_UP
-        q = c[:, None, :] + off[None]  # (N, P, 2) reference patch pixels
-        Kinv = np.linalg.inv(Ka)
-        x_a = np.concatenate([q, np.ones(q.shape[:2] + (1,))], -1) @ Kinv.T  # (N, P, 3) rays, z = 1
-        xc = np.c_[c, np.ones(len(c))] @ Kinv.T
-        # a patch pixel's depth on the plane through the centre's point: mu(p) = lam * ratio(p)
-        self.ratio = ((xc @ n_a)[:, None] / (x_a @ n_a)).astype(np.float32)
-        self.KU = (x_a @ R_ba.T @ Kb.T).astype(np.float32)  # uvw = mu KU + K t
-        self.kt = (Kb @ t_ba).astype(np.float32)
-        self.xb, self.t_ba, self.Kb = xc @ R_ba.T, t_ba, Kb
-        self.img = b.img
-        ref = patch_ncc.sample_bilinear(a.img, q.reshape(-1, 2)).reshape(len(c), -1)
-        self.contrast = ref.std(-1)
-        self.sparse = np.nonzero(((off[:, 0] % 2) == 0) & ((off[:, 1] % 2) == 0))[0]
-        self.ref = patch_ncc.zncc_rows(ref).astype(np.float32)
-        self.ref_sparse = patch_ncc.zncc_rows(ref[:, self.sparse]).astype(np.float32)
-        self.lam0 = -cfg.prior_height / (xc @ Ra.T)[:, 2]
-        # px per unit tau along the epipolar line
-        self.g = np.linalg.norm(self.centre_px(0.01) - self.centre_px(-0.01), axis=-1) / 0.02
-
-    def centre_px(self, tau: np.ndarray | float, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-        lam = self.lam0[rows] * np.exp(tau)
-        uvw = (lam[:, None] * self.xb[rows] + self.t_ba) @ self.Kb.T
-        return uvw[:, :2] / uvw[:, 2:3]
-
-    def score(self, tau: np.ndarray, rows: np.ndarray, sparse: bool, reference: bool = False) -> np.ndarray:
-        """NCC (R, S) of hypotheses tau (R, S) of corners ``rows``; -1 where the patch leaves b
-        (:func:`pavemap.geometry.patch_ncc.sweep_scores`; ``reference``: its numpy reference)."""
-        pix = self.sparse if sparse else slice(None)
-        ref = self.ref_sparse if sparse else self.ref
-        f = patch_ncc.sweep_scores_numpy if reference else patch_ncc.sweep_scores
-        return f(self.lam0[rows, None] * np.exp(tau), self.ratio[rows][:, pix], self.KU[rows][:, pix], self.kt,
-                 self.img, ref[rows])
-
-    def best(self, tau: np.ndarray, rows: np.ndarray, sparse: bool, margin: float = 0.1):
-        """Best hypothesis per row of tau (R, S) refined by a parabola: (tau, peak NCC, distinct peak)."""
-        ncc = self.score(tau, rows, sparse)
-        k = np.argmax(ncc, 1)
-        r = np.arange(len(rows))
-        peak = ncc[r, k]
-        second = second_peak(ncc, k)
-        S = tau.shape[1]
-        kk = np.clip(k, 1, S - 2)
-        off = parabola_vertex(ncc[r, kk - 1], ncc[r, kk], ncc[r, kk + 1])
-        return tau[r, kk] + off * (tau[r, 1] - tau[r, 0]), peak, (k > 0) & (k < S - 1) & (second < peak - margin)
-
-
-def _sweep_match(a: _ViewData, b: _ViewData, corners: np.ndarray, cfg: GroundConfig, tau_prior: np.ndarray,
-                 budget: int = 1_500_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Match a's corners (N, 2) into b, coarse (``coarse_px`` spacing over the whole range) to fine (1 px,
-    then two parabola fits at 0.5 and 0.25 px). ``tau_prior`` (N,): a corner's log depth from an earlier
-    partner (NaN if none); known corners are searched only within +-4 px of it. Returns kept corner
-    indices, their pixels in b (on the epipolar line, so a 2-view reprojection error is ~0), log depths."""
-    sw = _Sweep(a, b, corners.astype(np.float64), cfg)
-    span = 2 * cfg.sweep_range
-    P = len(sw.sparse) if cfg.sparse_coarse else len(sw.ref[0])
-    t_hat, ok = np.zeros(len(corners)), np.zeros(len(corners), bool)
-    usable = (sw.contrast >= cfg.min_contrast) & (sw.g * span >= 2.0)  # else: no texture / no parallax
-    known = np.isfinite(tau_prior)
-    unknown = np.nonzero(usable & ~known)[0]
-    unknown = unknown[np.argsort(sw.g[unknown])]  # chunks of alike parallax need alike hypothesis counts
-    start = 0
-    while start < len(unknown):
-        S = min(int(np.ceil(span * sw.g[unknown[start]] / cfg.coarse_px)) + 1, cfg.sweep_max_steps + 1)
-        n = max(1, budget // (S * P))
-        S = min(int(np.ceil(span * sw.g[unknown[start:start + n]].max() / cfg.coarse_px)) + 1,
-                cfg.sweep_max_steps + 1)
-        rows = unknown[start:start + n]
-        tau = np.broadcast_to(np.linspace(-cfg.sweep_range, cfg.sweep_range, S), (len(rows), S))
-        t_hat[rows], peak, distinct = sw.best(tau, rows, cfg.sparse_coarse)
-        ok[rows] = distinct & (peak >= cfg.min_ncc - 0.1)
-        start += n
-    rows = np.nonzero(usable & known)[0]
-    if len(rows):
-        tau = tau_prior[rows, None] + np.arange(-4.0, 5.0)[None] / sw.g[rows, None]
-        t_hat[rows], peak, ok[rows] = sw.best(tau, rows, False)
-    rows = np.nonzero(ok)[0]
-    if len(rows):
-        t_hat[rows], _, good = sw.best(t_hat[rows, None] + np.arange(-2.0, 3.0)[None] / sw.g[rows, None], rows,
-                                       False)
-        rows = rows[good]
-    for h in (0.5, 0.25):  # two parabola fits at sub-pixel spacing
-        hh = h / sw.g[rows]
-        ncc = sw.score(t_hat[rows, None] + np.stack([-hh, 0 * hh, hh], 1), rows, sparse=False)
-        t_hat[rows] += hh * parabola_vertex(ncc[:, 0], ncc[:, 1], ncc[:, 2])
-        rows = rows[(ncc.min(1) > -1) & (ncc[:, 1] >= cfg.min_ncc)]
-    if cfg.min_drop > 0 and len(rows):
-        # a sharp peak: an edge running nearly with the epipolar line gives a broad one, and a wrong depth
-        hh = 2.0 / sw.g[rows]
-        ncc = sw.score(t_hat[rows, None] + np.stack([-hh, 0 * hh, hh], 1), rows, sparse=False)
-        rows = rows[ncc[:, 1] - np.maximum(ncc[:, 0], ncc[:, 2]) >= cfg.min_drop]
-    uv = sw.centre_px(t_hat[rows], rows)
-    if b.label_ok is not None and len(rows):
-        ui = np.clip(np.rint(uv).astype(np.int64), 0, [b.cam.width - 1, b.cam.height - 1])
-        on = b.label_ok[ui[:, 1], ui[:, 0]]
-        rows, uv = rows[on], uv[on]
-    return rows, uv, t_hat[rows]
+    if far:
+        vd.far_mask = mask & _range_mask(cam, vd.T, cfg, far=True)
+    vd.grey, vd.mask = grey, mask & _range_mask(cam, vd.T, cfg)
 
 
 # ---------------------------------------------------------------------------- pairs, filters, driver
 
 
-def _overlap(a: _ViewData, b: _ViewData, H: np.ndarray, step: int = 16) -> float:
+def _overlap(a: ViewData, b: ViewData, H: np.ndarray, step: int = 16) -> float:
     """Fraction of a's candidate ground pixels (sampled) that land on b's through homography H."""
     ys, xs = np.nonzero(a.mask[::step, ::step])
     if len(xs) == 0:
@@ -296,7 +181,7 @@ def _overlap(a: _ViewData, b: _ViewData, H: np.ndarray, step: int = 16) -> float
     return float((inside & b.mask[qi[:, 1], qi[:, 0]]).mean())
 
 
-def _partners(vds: list[_ViewData], i: int, cfg: GroundConfig) -> list[int]:
+def _partners(vds: list[ViewData], i: int, cfg: GroundConfig) -> list[int]:
     """Later views (same frame other cameras, next ``max_gap`` frames) that see enough of i's ground."""
     a = vds[i]
     out = []
@@ -312,42 +197,142 @@ def _partners(vds: list[_ViewData], i: int, cfg: GroundConfig) -> list[int]:
     return out
 
 
-def _match_all(seq: Sequence, vds: list[_ViewData], views: list[View], cfg: GroundConfig):
-    """Corners of every view matched into its partners: observations (track, view, uv), per track the road
-    flag of its reference pixel, the track count and counters."""
+def _far_partners(vds: list[ViewData], i: int, cfg: GroundConfig) -> list[int]:
+    """The far pass's two partners of view i: the first later views of its camera half ``far_baseline_m`` and
+    ``far_baseline_m`` away (the next one when both are the same), or none: a far point must be seen thrice."""
+    a = vds[i]
+    out: list[int] = []
+    for j in range(i + 1, len(vds)):
+        b = vds[j]
+        if b.pos - a.pos > cfg.far_max_gap or b.img is None:
+            break
+        if b.key[1] == a.key[1]:
+            base = np.linalg.norm(b.T[:3, 3] - a.T[:3, 3])
+            if (not out and base >= cfg.far_baseline_m / 2) or (out and base >= cfg.far_baseline_m):
+                out.append(j)
+                if len(out) == 2:
+                    return out
+    return []
+
+
+@dataclass
+class _Tracks:
+    """Observations (track, view, uv) gathered by :func:`_match_all`, the road flag of each track's
+    reference pixel, the track count and counters."""
+
+    stats: dict
+    obs: dict[str, list[np.ndarray]] = field(default_factory=lambda: {"track": [], "view": [], "uv": []})
+    road: list[np.ndarray] = field(default_factory=list)
+    far: list[np.ndarray] = field(default_factory=list)  # the far pass's track ids
+    n: int = 0
+
+    def add(self, track: np.ndarray, view: int, uv: np.ndarray) -> None:
+        for k, x in (("track", track), ("view", np.full(len(track), view)), ("uv", uv)):
+            self.obs[k].append(x)
+
+
+def _corners(grey: np.ndarray, mask: np.ndarray, n: int, cfg: GroundConfig, pad: int = 4) -> np.ndarray | None:
+    """(N, 2) float64 Shi-Tomasi corners of ``grey`` (H, W) within ``mask``, or None. Found in the rows the mask
+    spans (plus ``pad``, so every masked pixel's response is the full image's): the far mask is a thin band."""
+    rows = np.flatnonzero(mask.any(1))
+    if len(rows) == 0:
+        return None
+    r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + 1 + pad, len(mask))
+    c = cv2.goodFeaturesToTrack(grey[r0:r1], n, cfg.quality, cfg.min_distance, mask=mask[r0:r1].astype(np.uint8))
+    return None if c is None else c.reshape(-1, 2).astype(np.float64) + [0.0, r0]
+
+
+def _match_corners(vds: list[ViewData], i: int, mask: np.ndarray, n_corners: int, partners: list[int],
+                   cfg: GroundConfig, acc: _Tracks, normal: np.ndarray = Z_UP) -> None:
+    """View i's corners within ``mask`` (H, W) bool matched into ``partners``, added to ``acc``; the sweep's
+    planes have the world ``normal`` (3,)."""
+    a = vds[i]
+    corners = _corners(a.grey, mask, n_corners, cfg)
+    if corners is None:
+        return
+    tid = acc.n + np.arange(len(corners))
+    ci = np.rint(corners).astype(np.int64)
+    acc.road.append(np.ones(len(corners), bool) if a.road is None else a.road[ci[:, 1], ci[:, 0]])
+    acc.add(tid, i, corners)
+    tau = np.full(len(corners), np.nan)  # log depth found so far (narrows later partners' search)
+    patches = Patches(a, corners, cfg, normal)
+    for j in partners:
+        idx, uv_b, t = sweep_match(a, vds[j], corners, cfg, tau, patches)
+        tau[idx] = np.where(np.isfinite(tau[idx]), tau[idx], t)
+        acc.stats["pairs"] += 1
+        acc.stats["matches"] += len(idx)
+        acc.add(tid[idx], j, uv_b)
+    acc.n += len(corners)
+
+
+@dataclass
+class _FarPlan:
+    """The far pass: its reference views ref (V,) bool, each one's sweep plane normal (V, 3) (the road's
+    grade at the end it looks out of), and the path's ends {0: first, -1: last} as (end point (2,), unit
+    direction out of the path (2,))."""
+
+    ref: np.ndarray
+    normal: np.ndarray
+    ends: dict[int, tuple[np.ndarray, np.ndarray]]
+
+
+def _far_plan(vds: list[ViewData], traj: np.ndarray, cfg: GroundConfig, grade_m: float = 10.0) -> _FarPlan:
+    """The far pass serves the road beyond the path's ends (traj (F, 3)), which no later view comes nearer to:
+    its references are every ``far_every``-th frame within ``far_range`` of path of an end, cameras looking
+    out of it (within 45 degrees); its points are kept beyond an end only (nearer road has the near pass's).
+    Its planes follow the grade of the last ``grade_m`` of path: 30 m ahead a patch spans ~10 m of road, and
+    a level plane on a 2 % grade put the points 5 cm low."""
+    plan = _FarPlan(np.zeros(len(vds), bool), np.tile(Z_UP, (len(vds), 1)), {})
+    if cfg.far_range <= cfg.max_range or len(traj) < 2:
+        return plan
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj[:, :2], axis=0), axis=1))])
+    pos = np.array([vd.pos for vd in vds])
+    axis = np.stack([vd.T[:2, 2] for vd in vds])
+    level = np.linalg.norm(axis, axis=1)
+    for end in (0, -1):
+        out = travel_direction(traj[:, :2], end)
+        if out is None:
+            continue
+        plan.ends[end] = (traj[end, :2], out)
+        near = np.abs(along - along[end]) <= grade_m
+        rise = np.polyfit(along[near], traj[near, 2], 1)[0] * (1 if end == -1 else -1) if near.sum() >= 2 else 0.0
+        n = np.array([-rise * out[0], -rise * out[1], 1.0])
+        mine = ((np.abs(along[pos] - along[end]) <= cfg.far_range) & (pos % cfg.far_every == 0) & (level > 0.5)
+                & (axis @ out >= np.cos(np.pi / 4) * level))
+        plan.ref |= mine
+        plan.normal[mine] = n / np.linalg.norm(n)
+    return plan
+
+
+def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: GroundConfig, far: _FarPlan,
+               on_rgb: RgbHook | None) -> _Tracks:
+    """Corners of every view matched into its partners and, for the far pass's references, far corners into
+    two partners up to ``far_baseline_m`` away. Views are loaded lazily and dropped once no later
+    reference needs them."""
     luts = (seq.class_lut("ground") & ~seq.class_lut("movable"), seq.class_lut("road"))
-    stats: dict = {"views": len(vds), "pairs": 0, "matches": 0}
-    obs: dict[str, list[np.ndarray]] = {"track": [], "view": [], "uv": []}
-    road: list[np.ndarray] = []
-    n_tracks, loaded = 0, 0  # views are loaded lazily and dropped once no later reference needs them
+    acc = _Tracks({"views": len(vds), "pairs": 0, "matches": 0, "far_pairs": 0})
+    loaded = 0
     for i, a in enumerate(vds):
-        while loaded < len(vds) and vds[loaded].pos - a.pos <= cfg.max_gap:
-            _load(seq, vds[loaded], views[loaded], cfg, *luts)
+        while loaded < len(vds) and (
+                vds[loaded].pos - a.pos <= cfg.max_gap
+                or (far.ref[i] and vds[loaded].pos - a.pos <= cfg.far_max_gap
+                    and np.linalg.norm(vds[loaded - 1].T[:3, 3] - a.T[:3, 3]) < cfg.far_baseline_m)):
+            _load(seq, vds[loaded], views[loaded], cfg, *luts, far=bool(far.ref[loaded]), on_rgb=on_rgb)
             loaded += 1
-        corners = cv2.goodFeaturesToTrack(a.grey, cfg.max_corners, cfg.quality, cfg.min_distance,
-                                          mask=a.mask.astype(np.uint8))
-        if corners is not None:
-            corners = corners.reshape(-1, 2).astype(np.float64)
-            tid = n_tracks + np.arange(len(corners))
-            ci = np.rint(corners).astype(np.int64)
-            road.append(np.ones(len(corners), bool) if a.road is None else a.road[ci[:, 1], ci[:, 0]])
-            for k, x in (("track", tid), ("view", np.full(len(corners), i)), ("uv", corners)):
-                obs[k].append(x)
-            tau = np.full(len(corners), np.nan)  # log depth found so far (narrows later partners' search)
-            for j in _partners(vds, i, cfg):
-                idx, uv_b, t = _sweep_match(a, vds[j], corners, cfg, tau)
-                tau[idx] = np.where(np.isfinite(tau[idx]), tau[idx], t)
-                stats["pairs"] += 1
-                stats["matches"] += len(idx)
-                for k, x in (("track", tid[idx]), ("view", np.full(len(idx), j)), ("uv", uv_b)):
-                    obs[k].append(x)
-            n_tracks += len(corners)
-        a.grey = a.img = a.mask = a.label_ok = a.road = None
-    return obs, road, n_tracks, stats
+        _match_corners(vds, i, a.mask, cfg.max_corners, _partners(vds, i, cfg), cfg, acc)
+        if a.far_mask is not None and (partners := _far_partners(vds, i, cfg)):
+            first = acc.n
+            _match_corners(vds, i, a.far_mask, cfg.far_corners, partners, cfg, acc, far.normal[i])
+            acc.far.append(np.arange(first, acc.n))
+            acc.stats["far_pairs"] += 1
+        a.grey = a.img = a.mask = a.label_ok = a.road = a.far_mask = None
+    return acc
 
 
-def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_points: int = 50) -> GroundPoints:
+def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_points: int = 50,
+                       on_rgb: RgbHook | None = None) -> GroundPoints:
     """Triangulated ground points of ``seq`` (poses fixed). See the module docstring for the method.
+    ``on_rgb(view, rgb)`` receives every view's decoded full-resolution image (H, W, 3) uint8.
 
     Without semantics (or ``use_semantics=False``) ground is what lies below the horizon, within
     ``max_range`` on the prior plane, below its cameras and within ``corridor_m`` of the trajectory.
@@ -358,10 +343,14 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
     vds, views = [], []
     for pos, f in enumerate(seq.frames):
         for name, v in f.views.items():
-            vds.append(_ViewData((f.index, name), pos, seq.cameras[name].scaled(cfg.scale), v.T_world_cam))
+            vds.append(ViewData((f.index, name), pos, seq.cameras[name].scaled(cfg.scale), v.T_world_cam))
             views.append(v)
     semantic = cfg.use_semantics and any(v.semantics for v in views)
-    obs, road, n_tracks, stats = _match_all(seq, vds, views, cfg)
+    traj_xy = seq.trajectory()[:, :2]
+    far = _far_plan(vds, seq.trajectory(), cfg)
+    ends = far.ends
+    acc = _match_all(seq, vds, views, cfg, far, on_rgb)
+    obs, road, n_tracks, stats = acc.obs, acc.road, acc.n, acc.stats
     stats["t_match_s"] = round(time.perf_counter() - t0, 2)
     keys = [vd.key for vd in vds]
     if stats["matches"] == 0:
@@ -376,8 +365,17 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
     # a ground point lies below every camera that sees it (catches mismatches on walls and trees)
     np.minimum.at(cam_z := np.full(n_tracks, np.inf), track, Tall[vid, 2, 3])
     ok &= tri.points[:, 2] < cam_z - 0.3
-    if not semantic and ok.any():
-        ok[ok] &= within_corridor(tri.points[ok], seq.trajectory(), cfg.corridor_m)
+    if acc.far:  # the far pass's points beyond the path's ends only
+        far = np.zeros(n_tracks, bool)
+        far[np.concatenate(acc.far)] = True
+        beyond = np.zeros(n_tracks, bool)
+        for p, out in ends.values():
+            beyond |= (tri.points[:, :2] - p) @ out > 0
+        ok &= ~far | (beyond & (tri.n_views >= 3))
+    if not semantic and ok.any():  # the corridor continues straight beyond the ends, as the far pass looks
+        ext = {end: p + np.arange(cfg.far_range, 0, -1.0)[:, None] * out for end, (p, out) in ends.items()}
+        path = np.concatenate([ext.get(0, np.zeros((0, 2))), traj_xy, ext.get(-1, np.zeros((0, 2)))[::-1]])
+        ok[ok] &= within_corridor(tri.points[ok], np.c_[path, np.zeros(len(path))], cfg.corridor_m)
     stats["triangulated"] = int(ok.sum())
     if cfg.neighbour_m > 0 and ok.any():
         ok[ok] &= agrees_with_neighbours(tri.points[ok], 1.0, cfg.neighbour_m)

@@ -316,6 +316,18 @@ def path_cuts(traj_xy: np.ndarray, min_gap_m: float = 5.0, gap_factor: float = 5
     return np.flatnonzero(step > limit)
 
 
+def travel_direction(traj_xy: np.ndarray, end: int, span_m: float = 5.0) -> np.ndarray | None:
+    """(2,) unit direction of travel over the last (end=-1) or first (end=0) ``span_m`` of the path, pointing
+    out of the path (forward at its end, backward at its start); None for a path shorter than 0.5 m."""
+    t = traj_xy if end == -1 else traj_xy[::-1]
+    step = np.linalg.norm(np.diff(t, axis=0), axis=1)
+    back = np.cumsum(step[::-1])
+    k = int(np.searchsorted(back, span_m))  # segments covering the last span_m
+    d = t[-1] - t[max(len(t) - 2 - k, 0)]
+    n = float(np.hypot(*d))
+    return d / n if n > 0.5 else None
+
+
 def path_passes(traj_xy: np.ndarray) -> list[slice]:
     """The stretches of the path (F, 2) between its jumps (:func:`path_cuts`), as slices, in order."""
     b = np.concatenate([[0], path_cuts(traj_xy) + 1, [len(traj_xy)]])

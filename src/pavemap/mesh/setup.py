@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -12,12 +13,16 @@ import torch
 from pavemap.errors import PavemapError
 from pavemap.mesh.bake import batch_hits, pool_hits
 from pavemap.mesh.config import MeshConfig
-from pavemap.mesh.data import PixelPool, build_pool, finite_views, split_frames
-from pavemap.mesh.init_surface import path_cuts
+from pavemap.mesh.data import PixelPool, ScaledImages, build_pool, finite_views, split_frames
+from pavemap.mesh.ground_points import GroundConfig, GroundPoints, find_ground_points
+from pavemap.mesh.init_surface import path_cuts, travel_direction
 from pavemap.mesh.model import MeshGrid, RoadMeshModel, build_grid
 from pavemap.types import SemanticClass, Sequence, View
 
 Warn = Callable[[str], None]
+
+
+MIN_POINTS = 50  # fewer triangulated ground points: geometry not observable
 
 
 @dataclass
@@ -37,6 +42,7 @@ class TrainData:
     use_sem: bool
     use_depth: bool
     heldout: bool
+    gp: GroundPoints | None = None  # the ground points triangulated from the training views (when asked)
 
     @property
     def class_ids(self) -> list[int]:
@@ -75,12 +81,21 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn,
 
     grid, traj = trajectory_grid(train_views + held_views, cfg, warn)
 
-    pool = build_pool(seq, train_views, cfg.render_scale, channel_lut, use_sem, use_depth).to(device)
+    gp, images = None, None
+    if cfg.ground_points == "always" or (cfg.ground_points == "auto" and not use_depth):
+        # before the pool: the images the points decode are handed to it
+        images = ScaledImages(seq, cfg.render_scale)
+        gcfg = GroundConfig(prior_height=cfg.camera_height, scale=cfg.ground_points_scale,
+                            max_corners=cfg.ground_points_corners)
+        frames = {fi for fi, _ in train_views}
+        sub = dataclasses.replace(seq, frames=[f for f in seq.frames if f.index in frames])
+        gp = find_ground_points(sub, gcfg, min_points=MIN_POINTS, on_rgb=images.put)
+    pool = build_pool(seq, train_views, cfg.render_scale, channel_lut, use_sem, use_depth, images).to(device)
     eval_views = held_views if held_views else train_views
     epool = build_pool(seq, eval_views, cfg.eval_scale, channel_lut, use_sem, use_depth).to(device)
     if use_sem and int((epool.channel >= 0).sum()) == 0:
         warn("held-out views carry no labelled pixels: semantic accuracy is undefined")
-    return TrainData(pool, epool, grid, traj, classes, use_sem, use_depth, bool(held_views))
+    return TrainData(pool, epool, grid, traj, classes, use_sem, use_depth, bool(held_views), gp)
 
 
 def trajectory_grid(views: list[tuple[int, View]], cfg: MeshConfig, warn: Warn | None = None
@@ -116,18 +131,6 @@ def path_pieces(traj_xy: np.ndarray, frame_ids: list[int], warn: Warn | None = N
     return np.split(t, cuts + 1)
 
 
-def _travel(traj_xy: np.ndarray, end: int, span_m: float = 5.0) -> np.ndarray | None:
-    """(2,) unit direction of travel over the last (end=-1) or first (end=0) ``span_m`` of the path, pointing
-    out of the path (forward at its end, backward at its start); None for a path shorter than 0.5 m."""
-    t = traj_xy if end == -1 else traj_xy[::-1]
-    step = np.linalg.norm(np.diff(t, axis=0), axis=1)
-    back = np.cumsum(step[::-1])
-    k = int(np.searchsorted(back, span_m))  # segments covering the last span_m
-    d = t[-1] - t[max(len(t) - 2 - k, 0)]
-    n = float(np.hypot(*d))
-    return d / n if n > 0.5 else None
-
-
 def view_paths(views: list[tuple[int, object]], traj_xy: np.ndarray, range_m: float) -> list[np.ndarray]:
     """(2, 2) segments from camera centres ``range_m`` along their horizontal view direction: the road the end
     frames see beyond the trajectory. views: (frame position 0 or -1 in the path, View) of the first and last
@@ -145,7 +148,7 @@ def view_paths(views: list[tuple[int, object]], traj_xy: np.ndarray, range_m: fl
         if h <= 0.5:
             continue
         a = axis[:2] / h
-        out_dir = _travel(traj_xy, end) if len(traj_xy) > 1 else None
+        out_dir = travel_direction(traj_xy, end) if len(traj_xy) > 1 else None
         if out_dir is not None and float(a @ out_dir) < math.cos(math.radians(30.0)):
             continue
         out.append(np.array([c[:2], c[:2] + range_m * a]))
