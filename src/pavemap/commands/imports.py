@@ -98,7 +98,7 @@ def _geo(gps: str | None, offset: float | None, origin: str | None, oxts_first: 
 @_owned_output("root")
 def kitti_cmd(
     root: Path = typer.Argument(..., help="KITTI odometry root (holds sequences/ and poses/)."),
-    out: Path = typer.Option(..., "--out", help="Output sequence folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output sequence folder."),
     sequence: str = typer.Option("00", help="Sequence number, e.g. 00."),
     camera: int = typer.Option(2, help="2 = left colour (image_2), 0 = left grey (image_0)."),
     start: int = typer.Option(0, help="First frame."),
@@ -125,7 +125,7 @@ def kitti_cmd(
 @_owned_output("dataroot")
 def nuscenes_cmd(
     dataroot: Path = typer.Argument(..., help="nuScenes dataroot (holds v1.0-mini/, samples/, sweeps/)."),
-    out: Path = typer.Option(..., "--out", help="Output sequence folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output sequence folder."),
     scene: str = typer.Option(..., help="Scene name, e.g. scene-0064."),
     version: str = typer.Option("v1.0-mini", help="Release folder name."),
     sweeps: bool = typer.Option(False, "--sweeps", help="All camera images (12 Hz), not only keyframes."),
@@ -150,7 +150,7 @@ def nuscenes_cmd(
 @_owned_output("images")
 def folder_cmd(
     images: Path = typer.Argument(..., help="Images folder (files, or one subfolder per camera)."),
-    out: Path = typer.Option(..., "--out", help="Output sequence folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output sequence folder."),
     cameras: Path = typer.Option(..., "--cameras", help="cameras.json (see README: own drive)."),
     poses: str = typer.Option(..., "--poses", help="poses.csv, or 'sfm' to estimate them with pycolmap."),
     camera_height: float = typer.Option(1.5, help="Camera height above the road, metres (SfM scale, fallback)."),
@@ -183,7 +183,7 @@ def folder_cmd(
 @_owned_output("video")
 def video_cmd(
     video: Path = typer.Argument(..., help="Video file (any format OpenCV reads)."),
-    out: Path = typer.Option(..., "--out", help="Output sequence folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output sequence folder."),
     cameras: Path = typer.Option(..., "--cameras", help="cameras.json with the video's one camera."),
     poses: str = typer.Option(..., "--poses", help="poses.csv (timestamps in s, interpolated) or 'sfm'."),
     fps: float = typer.Option(2.0, help="Frames per second to keep (0 = every frame)."),
