@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import os
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -34,6 +35,23 @@ def available() -> bool:
     except ImportError:
         return False
     return True
+
+
+def compiled_on_first_use(fn: Callable) -> Callable:
+    """``fn`` compiled by numba (``cache=True``) at its first call, not at import (importing numba costs ~0.25 s;
+    the cache sits beside ``fn``'s module). The numba kernels of :mod:`pavemap.geometry` share this."""
+    kernel = None
+
+    @functools.wraps(fn)
+    def call(*args):
+        nonlocal kernel
+        if kernel is None:
+            import numba
+
+            kernel = numba.njit(cache=True)(fn)
+        return kernel(*args)
+
+    return call
 
 
 def use_for(rays: torch.Tensor) -> bool:

@@ -22,18 +22,7 @@ import os
 import cv2
 import numpy as np
 
-from pavemap.geometry.march_cpu import available
-
-_SCORE = None  # the compiled kernel, built on first use
-
-
-def _compiled():
-    global _SCORE
-    if _SCORE is None:
-        import numba
-
-        _SCORE = numba.njit(cache=True)(_score_py)
-    return _SCORE
+from pavemap.geometry.march_cpu import available, compiled_on_first_use
 
 
 def _score_py(e, ratio, KU, kt, img, ref, out):
@@ -80,6 +69,9 @@ def _score_py(e, ratio, KU, kt, img, ref, out):
             out[r, s] = dot / max(np.sqrt(ss), 1e-6)
 
 
+_KERNEL = compiled_on_first_use(_score_py)
+
+
 def zncc_rows(x: np.ndarray) -> np.ndarray:
     """(..., P) rows made zero-mean and unit-norm (a flat row stays ~0)."""
     x = x - x.mean(-1, keepdims=True)
@@ -122,7 +114,7 @@ def sweep_scores(lam: np.ndarray, ratio: np.ndarray, KU: np.ndarray, kt: np.ndar
     if not available() or os.environ.get("PAVEMAP_NCC", "").lower() == "numpy":
         return sweep_scores_numpy(lam, ratio, KU, kt, img, ref)
     out = np.empty(lam.shape, np.float64)
-    _compiled()(np.ascontiguousarray(lam, np.float64), np.ascontiguousarray(ratio, np.float64),
+    _KERNEL(np.ascontiguousarray(lam, np.float64), np.ascontiguousarray(ratio, np.float64),
                 np.ascontiguousarray(KU, np.float64), np.ascontiguousarray(kt, np.float64),
                 np.ascontiguousarray(img, np.float32), np.ascontiguousarray(ref, np.float64), out)
     return out

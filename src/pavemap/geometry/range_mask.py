@@ -12,18 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pavemap.geometry.march_cpu import available
-
-_KERNEL = None  # the compiled kernel, built on first use
-
-
-def _compiled():
-    global _KERNEL
-    if _KERNEL is None:
-        import numba
-
-        _KERNEL = numba.njit(cache=True)(_mask_py)
-    return _KERNEL
+from pavemap.geometry.march_cpu import available, compiled_on_first_use
 
 
 def _mask_py(K, R, height, sin_margin, lo, hi, out):
@@ -43,6 +32,9 @@ def _mask_py(K, R, height, sin_margin, lo, hi, out):
                 continue
             dist = height / -dz * horiz
             out[v, u] = dist >= lo and dist <= hi
+
+
+_KERNEL = compiled_on_first_use(_mask_py)
 
 
 def range_mask_numpy(K: np.ndarray, R: np.ndarray, shape: tuple[int, int], height: float, margin_deg: float,
@@ -67,7 +59,7 @@ def range_mask(K: np.ndarray, R: np.ndarray, shape: tuple[int, int], height: flo
     if not available():
         return range_mask_numpy(K, R, shape, height, margin_deg, lo, hi)
     out = np.empty(shape, bool)
-    _compiled()(np.ascontiguousarray(K, np.float64), np.ascontiguousarray(R, np.float64), float(height),
+    _KERNEL(np.ascontiguousarray(K, np.float64), np.ascontiguousarray(R, np.float64), float(height),
                 float(np.sin(np.radians(margin_deg))), float(lo), float(hi), out)
     return out
 
