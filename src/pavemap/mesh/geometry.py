@@ -1,8 +1,9 @@
 """The road geometry of a stage-1 run when its views have no depth, and the run's self-check (issue 12).
 
-Without a depth layer the images are the only height evidence. :func:`find_geometry` triangulates ground
-points from the training views (:func:`pavemap.mesh.ground_points.find_ground_points`, poses held fixed)
-and turns them into the camera height above the road; the configured mount height ``mesh.camera_height``
+Without a depth layer the images are the only height evidence. The ground points triangulated from the
+training views (:func:`pavemap.mesh.ground_points.find_ground_points`, poses held fixed; run by
+:func:`pavemap.mesh.setup.prepare` before the pixel pool, which takes the images they decode) are turned by
+:func:`find_geometry` into the camera height above the road; the configured mount height ``mesh.camera_height``
 is a prior with an uncertainty that the points override (and a warning when they disagree by more than
 ``mesh.camera_height_warn_frac``: a wrong mount height, or poses with a wrong scale). The points then
 shape the initial surface and/or act as sparse depth (``mesh.ground_points_use``).
@@ -30,7 +31,7 @@ from pavemap.mesh.data import PixelPool
 from pavemap.mesh.ground_points import GroundPoints, estimate_camera_height
 from pavemap.mesh.init_surface import camera_height as searched_height
 from pavemap.mesh.relief import ReliefFit
-from pavemap.mesh.setup import MIN_POINTS, TrainData, Warn
+from pavemap.mesh.setup import MIN_POINTS, TrainData, Warn, frames_of
 from pavemap.types import Sequence
 
 
@@ -62,8 +63,7 @@ class Geometry:
 
 def training_sequence(seq: Sequence, data: TrainData) -> Sequence:
     """``seq`` restricted to the frames of the training views (held-out images must not shape the geometry)."""
-    keep = {k.frame for k in data.pool.keys}
-    return dataclasses.replace(seq, frames=[f for f in seq.frames if f.index in keep])
+    return frames_of(seq, {k.frame for k in data.pool.keys})
 
 
 def find_geometry(seq: Sequence, data: TrainData, cfg: MeshConfig, warn: Warn) -> Geometry:

@@ -87,8 +87,7 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn,
         images = ScaledImages(seq, cfg.render_scale)
         gcfg = GroundConfig(prior_height=cfg.camera_height, scale=cfg.ground_points_scale,
                             max_corners=cfg.ground_points_corners)
-        frames = {fi for fi, _ in train_views}
-        sub = dataclasses.replace(seq, frames=[f for f in seq.frames if f.index in frames])
+        sub = frames_of(seq, {fi for fi, _ in train_views})  # held-out images must not shape the geometry
         gp = find_ground_points(sub, gcfg, min_points=MIN_POINTS, on_rgb=images.put)
     pool = build_pool(seq, train_views, cfg.render_scale, channel_lut, use_sem, use_depth, images).to(device)
     eval_views = held_views if held_views else train_views
@@ -96,6 +95,11 @@ def prepare(seq: Sequence, cfg: MeshConfig, device: torch.device, warn: Warn,
     if use_sem and int((epool.channel >= 0).sum()) == 0:
         warn("held-out views carry no labelled pixels: semantic accuracy is undefined")
     return TrainData(pool, epool, grid, traj, classes, use_sem, use_depth, bool(held_views), gp)
+
+
+def frames_of(seq: Sequence, frame_indices: set[int]) -> Sequence:
+    """``seq`` restricted to the frames with these indices, in order."""
+    return dataclasses.replace(seq, frames=[f for f in seq.frames if f.index in frame_indices])
 
 
 def trajectory_grid(views: list[tuple[int, View]], cfg: MeshConfig, warn: Warn | None = None
