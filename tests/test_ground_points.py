@@ -238,7 +238,8 @@ def test_compiled_sweep_score_equals_the_numpy_reference(drive, monkeypatch):
 
 def test_far_pass_observes_the_road_beyond_the_last_frame(drive, points):
     """The far pass adds points on the road ahead of the drive's end, beyond the near pass's reach, three views
-    each and on the true surface; it changes nothing elsewhere (its points are kept beyond the ends only)."""
+    each and on the true surface (its planes follow the road's grade); it changes nothing elsewhere (its points
+    are kept beyond the ends only)."""
     from pavemap.mesh.init_surface import travel_direction
 
     seq, grid, heights = drive
@@ -254,7 +255,8 @@ def test_far_pass_observes_the_road_beyond_the_last_frame(drive, points):
     assert beyond.sum() >= 10, beyond.sum()
     assert ahead(points).max() >= ahead(near).max() + 5.0
     err = points.points[beyond, 2] - sample_grid(grid, heights, points.points[beyond, :2])
-    assert abs(np.nanmedian(err)) <= 0.05 and (points.n_views[beyond] >= 3).all()
+    # on the grade of the road: level sweep planes put these points 5 cm low (their median: -5.1 cm)
+    assert abs(np.nanmedian(err)) <= 0.025 and (points.n_views[beyond] >= 3).all()
     # behind the end, the points are the near pass's
     mine = {tuple(np.round(p, 6)) for p in points.points[ahead(points) <= 0]}
     theirs = {tuple(np.round(p, 6)) for p in near.points[ahead(near) <= 0]}
