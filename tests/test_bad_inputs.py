@@ -384,3 +384,22 @@ def test_a_sequence_without_semantics_runs_with_the_fallback_filter(tiny_seq, tm
     assert (out / "metrics.json").is_file()
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["mask_fallbacks"].get("no_semantics", 0) > 0
+
+
+def test_load_rgb_names_the_file_and_prints_nothing_else(tmp_path, capfd):
+    """The OpenCV decoder reads good images; a missing, foreign or truncated file is PIL's SequenceError naming
+    it, with nothing of OpenCV's on the console."""
+    from pavemap.errors import SequenceError
+    from pavemap.io.sequence import load_rgb
+
+    good = tmp_path / "good.png"
+    Image.fromarray(np.arange(24 * 33 * 3, dtype=np.uint8).reshape(24, 33, 3)).save(good)
+    assert np.array_equal(load_rgb(good), np.asarray(Image.open(good).convert("RGB")))
+    (tmp_path / "text.png").write_text("not an image")
+    (tmp_path / "cut.png").write_bytes(good.read_bytes()[:60])
+    for name, why in (("missing.png", "No such file"), ("text.png", "cannot identify"), ("cut.png", "truncated")):
+        with pytest.raises(SequenceError, match=why) as e:
+            load_rgb(tmp_path / name)
+        assert name in str(e.value)
+    out, err = capfd.readouterr()
+    assert "imread" not in out + err and "WARN" not in out + err

@@ -336,7 +336,9 @@ def load_rgb(path: str | os.PathLike) -> np.ndarray:
     """(H, W, 3) uint8; grey images become 3 channels, alpha is dropped, EXIF orientation ignored (the
     intrinsics describe the sensor's pixels). OpenCV decodes (a 1241 x 376 PNG in 9.6 ms, PIL 14.3 ms); what it
     cannot read goes to PIL, which reads it or names the problem."""
-    im = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    # only existing files: OpenCV prints its own warning for a missing one before PIL names the problem
+    im = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION) if _is_file(Path(path)) \
+        else None
     if im is not None:
         return cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
     try:
