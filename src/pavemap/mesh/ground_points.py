@@ -346,8 +346,9 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
             vds.append(ViewData((f.index, name), pos, seq.cameras[name].scaled(cfg.scale), v.T_world_cam))
             views.append(v)
     semantic = cfg.use_semantics and any(v.semantics for v in views)
-    traj_xy = seq.trajectory()[:, :2]
-    far = _far_plan(vds, seq.trajectory(), cfg)
+    traj = seq.trajectory()
+    traj_xy = traj[:, :2]
+    far = _far_plan(vds, traj, cfg)
     ends = far.ends
     acc = _match_all(seq, vds, views, cfg, far, on_rgb)
     obs, road, n_tracks, stats = acc.obs, acc.road, acc.n, acc.stats
