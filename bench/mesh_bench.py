@@ -86,8 +86,9 @@ def bench_drive(data: Path, preset: str, depth: str, device: str) -> Path:
     return no_depth_copy(src, data / f"{preset}-none")
 
 
-def truth_camera_height(seq) -> float | None:  # noqa: ANN001
-    """Mean camera centre of a frame above the true surface, median over frames (None without truth)."""
+def truth_camera_height(seq, camera: str | None = None) -> float | None:  # noqa: ANN001
+    """Mean camera centre of a frame (or the ``camera``'s centre) above the true surface, median over frames
+    (None without truth)."""
     import numpy as np
 
     from pavemap.io.truth import has_truth_height, read_truth_height
@@ -95,7 +96,8 @@ def truth_camera_height(seq) -> float | None:  # noqa: ANN001
     if not has_truth_height(seq.root):
         return None
     t = read_truth_height(seq.root)
-    c = np.array([np.mean([v.T_world_cam[:3, 3] for v in f.views.values()], axis=0) for f in seq.frames])
+    c = np.array([np.mean([v.T_world_cam[:3, 3] for k, v in f.views.items() if camera in (None, k)], axis=0)
+                  for f in seq.frames if camera is None or camera in f.views])
     z, inside = t.height_at(torch.from_numpy(c[:, :2]).double())
     return float(np.median(c[inside.numpy(), 2] - z.numpy()[inside.numpy()])) if inside.any() else None
 

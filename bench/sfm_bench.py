@@ -7,6 +7,10 @@
   automatically, registered frames, lateral deviation of the path from a straight line, camera height
   constancy. Targets: 21/21, ≤ 0.5 m, ± 5 cm.
 
+Both report ``road_steps``: each step's length from the road's image motion (``pavemap.io.sfm_steps``), which
+sets the path's scale, beside the SfM's own; KITTI also the camera height the road's steps imply with the true
+poses (``road_steps_on_true_poses``).
+
 Both also report ``speed_check``: what the importers' speed check (``--fps``; KITTI 10 Hz, the clip's
 keyframes 2 Hz) says of the trajectory found: the largest change of speed per second, against its limit.
 
@@ -84,7 +88,28 @@ def kitti() -> dict:
             "camera_height_m": round(1.65 * s, 3), "scale_to_truth": round(s, 4),
             "ego_mask": mask_report(mask, "auto").to_dict(), "checks": res.info["checks"],
             "K_used": res.info["K_refined"], "dense_scale": res.info.get("dense_scale"),
-            "speed_check": speed_check(res, 10.0), "seconds": round(dt, 1)}
+            "road_steps": res.info.get("road_steps"), "speed_check": speed_check(res, 10.0),
+            "seconds": round(dt, 1), "road_steps_on_true_poses": kitti_true_pose_steps(ims, cam, gt)}
+
+
+def kitti_true_pose_steps(ims: list[Path], cam: Camera, gt: np.ndarray) -> dict:
+    """The road's step lengths with the *true* poses at the nominal 1.65 m: the camera height they imply
+    (true step / road step × 1.65), an estimate independent of the triangulated ground points."""
+    from pavemap.io.sfm_steps import road_steps
+
+    A = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # KITTI world (y down) -> z up
+    T = np.tile(np.eye(4), (len(gt), 1, 1))
+    T[:, :3, :3] = A @ gt[:, :, :3]
+    T[:, :3, 3] = gt[:, :, 3] @ A.T
+    est = road_steps(ims, T, cam, 1.65)
+    true = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+    ok = np.array([e.trusted for e in est])
+    h = 1.65 * true[ok] / np.array([e.length_m for e in est])[ok]
+    half = len(est) // 2
+    return {"measured": int(ok.sum()), "steps": len(est), "implied_height_median_m": round(float(np.median(h)), 3),
+            "implied_height_p10_p90_m": [round(float(np.percentile(h, q)), 3) for q in (10, 90)],
+            "first_half_m": round(float(np.median(h[np.flatnonzero(ok) < half])), 3),
+            "second_half_m": round(float(np.median(h[np.flatnonzero(ok) >= half])), 3)}
 
 
 def nuscenes() -> dict:
@@ -110,15 +135,46 @@ def nuscenes() -> dict:
             "K_refined": res.info["K_refined"], "intrinsics_refinement": res.info.get("intrinsics_refinement"),
             "checks": res.info["checks"], "interpolated": res.info["interpolated"],
             "steps_m": np.linalg.norm(np.diff(C, axis=0), axis=1).round(2).tolist(),
-            "dense_scale": res.info.get("dense_scale"), "speed_check": speed_check(res, 2.0),
+            "dense_scale": res.info.get("dense_scale"), "road_steps": res.info.get("road_steps"),
+            "speed_check": speed_check(res, 2.0),
             "seconds": round(dt, 1)}
 
 
+def synthetic_steps() -> dict:
+    """The road's step lengths against the truth on the synthetic presets' front cameras (true poses, the true
+    camera height over the road): relative error per step. Drives from ``mesh_bench`` (PAVEMAP_BENCH_DATA)."""
+    from mesh_bench import bench_drive, truth_camera_height
+    from pavemap.io.sequence import read_sequence
+    from pavemap.io.sfm_steps import road_steps
+
+    out = {}
+    for preset in ("kitti-like", "nuscenes-like"):
+        data = Path(os.environ.get("PAVEMAP_BENCH_DATA", "/tmp/pavemap-bench"))
+        seq = read_sequence(bench_drive(data, preset, "none", "cpu"))
+        cam = seq.cameras["CAM_FRONT"]
+        views = [f.views[cam.name] for f in seq.frames if cam.name in f.views][:40]
+        T = np.stack([v.T_world_cam for v in views])
+        true = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+        h = truth_camera_height(seq, cam.name)
+        t = time.time()
+        est = road_steps([seq.root / v.image for v in views], T, cam, h)
+        ok = np.array([e.trusted for e in est])
+        err = np.array([e.length_m for e in est])[ok] / true[ok] - 1
+        out[preset] = {
+            "steps": len(est), "measured": int(ok.sum()), "camera_height_m": round(h, 3),
+            "true_step_m": [round(float(true.min()), 2), round(float(true.max()), 2)],
+            "signed_median": round(float(np.median(err)), 4), "abs_median": round(float(np.median(abs(err))), 4),
+            "abs_p90": round(float(np.percentile(abs(err), 90)), 4), "abs_max": round(float(abs(err).max()), 4),
+            "seconds": round(time.time() - t, 1)}
+    return out
+
+
 def main() -> None:
-    """``python bench/sfm_bench.py [kitti] [nuscenes]``: the named clips (default both), merged into the results."""
-    names = sys.argv[1:] or ["kitti", "nuscenes"]
+    """``python bench/sfm_bench.py [kitti] [nuscenes] [synthetic]``: the named parts (default all), merged into
+    the results."""
+    names = sys.argv[1:] or ["kitti", "nuscenes", "synthetic"]
     out = json.loads(OUT.read_text()) if OUT.is_file() else {}
-    for name, fn in (("kitti", kitti), ("nuscenes", nuscenes)):
+    for name, fn in (("kitti", kitti), ("nuscenes", nuscenes), ("synthetic", synthetic_steps)):
         if name not in names:
             continue
         try:

@@ -74,6 +74,9 @@ def test_sfm_with_mask_recovers_trajectory_and_without_fails_clearly(bonnet_driv
     rmse = float(np.sqrt((np.linalg.norm((e - ce) @ R.T + cg - g, axis=1) ** 2).mean()))
     assert rmse < 0.02 * path
     assert res.info["checks"]["max_turn_deg"] < 10
+    # the scale is the road's: its image motion measured most steps, the dense points only checked them
+    assert res.info["road_steps"]["measured"] >= 0.8 * res.info["road_steps"]["steps"]
+    assert res.info["dense_scale"]["applied"] is False
     with pytest.raises(PavemapError, match=r"SfM.*(sanity check|registered only|no reconstruction).*--ego-mask"):
         sfm_poses(images, cam, camera_height=MOUNT_HEIGHT)
 

@@ -199,18 +199,20 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
               overlap: int = 10, num_threads: int = 1, max_features: int = 8192, min_registered: float = 0.6,
               seed: int = 0, peak_threshold: float = 0.003, verbose: bool = False, ego_mask: np.ndarray | None = None,
               refine_intrinsics: bool = False, min_parallax: float = 0.002, init_min_tri_angle: float = 2.0,
-              checks: SfmChecks | None = None, dense_scale: bool = True,
+              checks: SfmChecks | None = None, dense_scale: bool = True, road_steps: bool = True,
               times: np.ndarray | None = None) -> SfmResult:
     """Metric z-up camera-to-world poses (N, 4, 4) for ``images`` (video order) of one ``camera``.
 
     ``ego_mask`` (H, W) bool, True on the ego vehicle: no features there. ``refine_intrinsics``: the
     camera's K is nominal; refine focal length and principal point (``info["K_refined"]``).
     ``min_parallax``: keyframe threshold (share of the width, 0 = every frame). ``checks``: limits of
-    the sanity checks (``min_registered`` overrides its share). ``dense_scale``: refine the scale
-    from densely matched road points (:mod:`pavemap.io.sfm_scale`; sparse SIFT rarely lands on
-    asphalt). ``times`` (N,) s of the images, when known (a video's frame rate): the path's speed changes
-    are checked too (``SfmChecks.max_accel_mps2``). Raises PavemapError with a clear line when SfM fails
-    or its result fails a check.
+    the sanity checks (``min_registered`` overrides its share). ``road_steps``: each step's length,
+    and so the metric scale, from the road's image motion (:mod:`pavemap.io.sfm_steps`; forward-motion
+    SfM drifts in scale along a clip). ``dense_scale``: the cameras' heights over densely matched road
+    points (:mod:`pavemap.io.sfm_scale`; sparse SIFT rarely lands on asphalt) for the checks, and the
+    scale from them where the road's steps could not set it. ``times`` (N,) s of the images, when known
+    (a video's frame rate): the path's speed changes are checked too (``SfmChecks.max_accel_mps2``).
+    Raises PavemapError with a clear line when SfM fails or its result fails a check.
     """
     try:
         import pycolmap
@@ -249,8 +251,12 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         res = _metric_result(rec, all_names, keyframes, camera, camera_height, checks, hint)
         if "intrinsics" in o:
             res.info["intrinsics_refinement"] = o["intrinsics"]
+        # the road's step lengths set the scale where they measured most of the path; the dense ground
+        # points then only measure the heights for the checks (on the KITTI sample, with the road's scale
+        # already set, they moved it 4 % away from what they read with the true poses)
+        scaled = road_steps and _road_relength(res, images, camera, camera_height, ego_mask)
         if dense_scale:
-            _dense_rescale(res, images, camera, camera_height, ego_mask)
+            _dense_rescale(res, images, camera, camera_height, ego_mask, apply=not scaled)
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
                                        checks, hint, None if times is None else np.asarray(times)[res.registered])
         _fill_between_keyframes(res, keyframes)
@@ -337,9 +343,52 @@ def _metric_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera,
     return SfmResult(out, registered, float(s), int(drive_over.sum()), pts, info, K)
 
 
+def _road_relength(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
+                   ego_mask: np.ndarray | None, min_share: float = 0.5) -> bool:
+    """Each registered step of ``res`` re-measured on the road (in place); ``info["road_steps"]`` says how.
+
+    True when the road measured at least ``min_share`` of the steps: the path's scale is then the road's.
+    """
+    from pavemap.io.sfm_steps import relength_path, road_steps
+
+    reg = np.flatnonzero(res.registered)
+    T = res.T_world_cam[reg]
+    est = road_steps([images[i] for i in reg], T, camera, camera_height, ego_mask)
+    C = T[:, :3, 3]
+    L = np.linalg.norm(np.diff(C, axis=0), axis=1)
+    C_new, factor = relength_path(C, est)
+    trusted = np.array([e.trusted for e in est], dtype=bool)
+    road = np.array([e.length_m for e in est])
+    moving = trusted & (L > 0.25) & (road > 0.25)
+    ratio = L[moving] / road[moving]
+    res.info["road_steps"] = {
+        "measured": int(trusted.sum()), "steps": len(est),
+        "sfm_m": L.round(2).tolist(), "road_m": [round(e.length_m, 2) if e.trusted else None for e in est],
+        "peak_ncc": [round(e.peak, 3) for e in est],
+        # the SfM's own camera height along the path, as the road's step lengths read it
+        "sfm_height_m": (camera_height * ratio).round(3).tolist(),
+    }
+    if not trusted.any():
+        log.warning("SfM: no step could be measured on the road; keeping the SfM's step lengths")
+        return False
+    overall = float(np.linalg.norm(np.diff(C_new, axis=0), axis=1).sum() / max(L.sum(), 1e-9))
+    T[:, :3, 3] = C_new
+    res.T_world_cam[reg] = T
+    # the sparse points cannot follow a change of scale along the path; they take its overall factor
+    res.points *= overall
+    res.scale *= overall
+    res.info["_heights"] = res.info["_heights"] * overall
+    log.info("SfM: %d of %d steps measured on the road; path length x%.3f", int(trusted.sum()), len(est), overall)
+    return bool(trusted.mean() >= min_share)
+
+
 def _dense_rescale(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
-                   ego_mask: np.ndarray | None) -> None:
-    """Refine ``res``'s scale in place from densely matched road points; keeps the sparse scale if that fails."""
+                   ego_mask: np.ndarray | None, apply: bool = True) -> None:
+    """Refine ``res``'s scale in place from densely matched road points; keeps the sparse scale if that fails.
+
+    ``apply`` False: the scale stays; the per-camera heights are measured (for the checks), the road is
+    put at z = 0 and the factor the points would have applied is reported.
+    """
     from pavemap.io.sfm_scale import refine_scale
 
     reg = np.flatnonzero(res.registered)
@@ -349,13 +398,17 @@ def _dense_rescale(res: SfmResult, images: list[Path], camera: Camera, camera_he
     if not np.isfinite(factor):
         log.warning("SfM: dense road matching failed (%s); keeping the sparse scale", stats.get("reason"))
         return
-    T[:, :3, 3] *= factor
+    res.info["dense_scale"]["applied"] = apply
+    if apply:
+        T[:, :3, 3] *= factor
+        res.points *= factor
+        res.scale *= factor
+    else:
+        heights = heights / factor
     ok = np.isfinite(heights)
     # the road at z = 0: shift by the median road level under the cameras
     T[:, 2, 3] -= float(np.median(T[ok, 2, 3] - heights[ok]))
     res.T_world_cam[reg] = T
-    res.points *= factor
-    res.scale *= factor
     res.info["_heights"] = heights
 
 

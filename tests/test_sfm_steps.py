@@ -1,0 +1,85 @@
+"""Issue 13: each step of an SfM path re-measured on the road's image motion (pavemap.io.sfm_steps)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pavemap.geometry.triangulate import plane_homography
+from pavemap.io.sfm_steps import StepConfig, StepEstimate, relength_path, road_steps, sweep_step
+
+
+def test_sweep_finds_the_step_of_a_warped_road_texture():
+    import cv2
+
+    rng = np.random.default_rng(0)
+    K = np.array([[400.0, 0, 320], [0, 400, 120], [0, 0, 1]])
+    img = cv2.GaussianBlur(rng.random((240, 640)).astype(np.float32), (0, 0), 1.2)
+    T = np.eye(4)
+    T[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]  # camera z forward along world x, y down
+    T[:3, 3] = [0.0, 0.0, 1.6]
+    fwd, up, h = np.array([1.0, 0, 0]), np.array([0.0, 0, 1]), 1.6
+    roi = np.zeros((240, 640), bool)
+    roi[140:230, 100:540] = True
+    for true in (0.7, 2.3):
+        T2 = T.copy()
+        T2[:3, 3] += true * fwd
+        moved = cv2.warpPerspective(img, plane_homography(K, T, K, T2, up, 0.0), (640, 240))
+        e = sweep_step(img, moved, K, T, T[:3, :3], fwd, up, h, roi, None, StepConfig(max_step_m=5.0))
+        assert e.trusted and abs(e.length_m - true) < 0.02 * true
+    # a texture that does not move with the road (a static bonnet, a wall) gives no trusted step
+    e = sweep_step(img, rng.random((240, 640)).astype(np.float32), K, T, T[:3, :3], fwd, up, h, roi, None,
+                   StepConfig())
+    assert not e.trusted
+
+
+def test_road_steps_undo_an_sfm_path_with_wrong_step_lengths(tiny_seq):
+    cam = next(iter(tiny_seq.cameras.values()))
+    views = [f.views[cam.name] for f in tiny_seq.frames]
+    T = np.stack([v.T_world_cam for v in views])
+    C = T[:, :3, 3]
+    d = np.diff(C, axis=0)
+    true = np.linalg.norm(d, axis=1)
+    # forward-motion SfM's failure: steps alternately 1.6x and 0.6x, the whole path at 0.8 of its scale
+    f = np.where(np.arange(len(d)) % 2, 0.6, 1.6) * 0.8
+    bad = T.copy()
+    bad[1:, :3, 3] = C[0] + np.cumsum(d * f[:, None], axis=0)
+    est = road_steps([tiny_seq.root / v.image for v in views], bad, cam, 1.65)  # the kitti-like mount
+    ok = np.array([e.trusted for e in est])
+    got = np.array([e.length_m for e in est])
+    assert ok.sum() >= len(est) - 1
+    assert np.max(np.abs(got[ok] / true[ok] - 1)) < 0.08
+    fixed, factor = relength_path(bad[:, :3, 3], est)
+    path = float(true.sum())
+    assert np.linalg.norm(fixed - C, axis=1).max() < 0.03 * path
+    assert np.linalg.norm(bad[:, :3, 3] - C, axis=1).max() > 0.1 * path  # the test's path was wrong
+
+
+def test_relength_keeps_a_path_the_road_could_not_measure_and_interpolates_gaps():
+    C = np.c_[np.arange(5.0), np.zeros(5), np.full(5, 1.5)]
+
+    def est(length: float, trusted: bool) -> StepEstimate:
+        return StepEstimate(length, 0.5, 0.1, trusted, np.zeros(0), np.zeros(0))
+
+    same, factor = relength_path(C, [est(float("nan"), False)] * 4)
+    assert np.array_equal(same, C) and np.all(factor == 1)
+    out, factor = relength_path(C, [est(2.0, True), est(9.0, False), est(2.0, True), est(2.0, True)])
+    assert np.allclose(np.diff(out[:, 0]), 2.0)  # the unmeasured step takes its neighbours' ratio
+
+
+def test_a_road_without_texture_measures_no_step(tmp_path):
+    from PIL import Image
+
+    from pavemap.types import Camera
+
+    cam = Camera("front", 320, 120, np.array([[200.0, 0, 160], [0, 200, 50], [0, 0, 1]]))
+    paths = []
+    for i in range(3):
+        paths.append(tmp_path / f"{i}.png")
+        Image.fromarray(np.full((120, 320), 128, np.uint8)).save(paths[-1])
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T[:, :3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]  # camera z forward along world x, y down
+    T[:, :3, 3] = [[i * 1.0, 0, 1.5] for i in range(3)]
+    est = road_steps(paths, T, cam, 1.5)
+    assert len(est) == 2 and not any(e.trusted for e in est)
+    fixed, _ = relength_path(T[:, :3, 3], est)
+    assert np.array_equal(fixed, T[:, :3, 3])
