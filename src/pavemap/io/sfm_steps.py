@@ -33,7 +33,8 @@ class StepConfig:
       walls and verges stand above the road plane nearer than it and would pull the step long).
     - ``window``: side of the NCC window (px at ``scale``).
     - ``max_step_m``: longest step swept (a car at 130 km/h and 2 Hz covers 18 m).
-    - ``coarse``: candidates of the first pass (the second pass refines around the best).
+    - ``coarse`` / ``fine``: candidates of the first pass (geometric, 0.05 m to ``max_step_m``) and of the
+      second, between the best's neighbours.
     - ``min_peak`` / ``min_margin``: a step is trusted when its NCC peak reaches ``min_peak`` and beats
       the best candidate farther than 20 % (or 0.3 m) away by ``min_margin``.
     """
@@ -44,7 +45,8 @@ class StepConfig:
     half_width_m: float = 2.0
     window: int = 11
     max_step_m: float = 20.0
-    coarse: int = 64
+    coarse: int = 40
+    fine: int = 11
     min_peak: float = 0.3
     min_margin: float = 0.03
 
@@ -171,7 +173,7 @@ def sweep_step(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: n
         return StepEstimate(float("nan"), float("nan"), 0.0, False, coarse, s_coarse)
     k = int(np.nanargmax(s_coarse))
     lo, hi = coarse[max(k - 1, 0)], coarse[min(k + 1, len(coarse) - 1)]
-    fine = np.linspace(lo, hi, 17)
+    fine = np.linspace(lo, hi, cfg.fine)
     s_fine = np.array([score(d) for d in fine])
     sweep = np.r_[coarse, fine]
     sc = np.r_[s_coarse, s_fine]
