@@ -267,3 +267,25 @@ def test_a_hit_a_hair_outside_its_triangle_votes_nothing_against_a_vertex():
     h = batch_hits(pool, slice(0, n), torch.arange(n), hit.vertex_ids, hit.bary)
     rgb, support = _mean_colours([h], hf.nx * hf.ny, None, torch.device("cpu"))
     assert float(support[stray]) == 0 and torch.isfinite(rgb).all() and float(rgb.abs().max()) <= 1.0
+
+
+def test_only_blobs_of_disagreeing_pixels_are_taken_for_vehicles():
+    """A thin line of disagreeing pixels (a paint edge a centimetre off) stays; a wide blob (a vehicle) goes."""
+    from pavemap.mesh.bake import _opened
+    from pavemap.mesh.data import PixelPool, ViewKey
+
+    H, W = 20, 30
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    uv = torch.stack([u.reshape(-1), v.reshape(-1)], 1).float() + 0.5
+    n = H * W
+    pool = PixelPool([ViewKey(0, "a")], torch.eye(3)[None], torch.eye(4)[None], torch.zeros(n, dtype=torch.long),
+                     uv, torch.zeros(n, 3, dtype=torch.uint8), torch.full((n,), -1), torch.ones(n, dtype=torch.bool),
+                     None)
+    flag = torch.zeros(H, W, dtype=torch.bool)
+    flag[3, :] = True  # a line one pixel wide
+    flag[10:16, 5:12] = True  # a blob 6 x 7
+    flag[12, 20:23] = True  # a speck
+    out = _opened(flag.reshape(-1), pool, 2).reshape(H, W)
+    assert out[10:16, 5:12].all()  # the blob stays whole
+    assert not out[3].any() and not out[12, 20:23].any()  # the line and the speck go
+    assert not (out & ~flag).any()

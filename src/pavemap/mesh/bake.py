@@ -196,20 +196,42 @@ def pixel_residuals(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_
 
 @torch.no_grad()
 def static_pixels(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, cutoff: float,
-                  rounds: int = 2, fill_sigma: float = 1.0) -> torch.Tensor:
+                  rounds: int = 2, fill_sigma: float = 1.0, blob_px: int = 0) -> torch.Tensor:
     """(N,) bool: the pool pixels that agree with the road the other views see; False for a moving object.
 
     A vehicle passing the camera covers a road vertex in a few views only: bake the colours, drop the pixels
     whose colour is more than ``cutoff`` (RGB distance in [0, 1]) from the baked road where they land, and
     bake again without them (``rounds`` times), so the majority of views decides. Pixels that miss the surface
-    stay True (they are not evidence either way).
+    stay True (they are not evidence either way). ``blob_px`` > 0: only blobs at least 2 ``blob_px`` + 1 pixels
+    wide in their image are dropped (:func:`_opened`).
     """
     keep = torch.ones(len(pool), dtype=torch.bool, device=pool.view.device)
     for _ in range(rounds):
         rgb, _, _ = bake_colours(surface, pool.subset(keep), T, max_dist, fill_sigma)
         r = pixel_residuals(surface, pool, T, max_dist, rgb)
-        keep = ~(r > cutoff)  # NaN (a miss) compares False: kept
+        off = r > cutoff  # NaN (a miss) compares False: kept
+        keep = ~(_opened(off, pool, blob_px) if blob_px > 0 else off)
     return keep
+
+
+def _opened(flag: torch.Tensor, pool: PixelPool, radius: int) -> torch.Tensor:
+    """(P,) bool: ``flag`` (P,) opened in each view's image by a (2 radius + 1)² square: only blobs that wide stay.
+
+    A vehicle covers a blob of the image; a surface a centimetre off or a view's shading moves the colours at
+    paint edges and texture, thin lines that the opening removes. Pixels not in the pool (sky, movable
+    classes) count as flagged, so a blob is not eaten from the mask's border.
+    """
+    if not bool(flag.any()):
+        return flag
+    col = pool.uv[:, 0].floor().long().clamp(min=0)
+    row = pool.uv[:, 1].floor().long().clamp(min=0)
+    H, W = int(row.max()) + 1, int(col.max()) + 1
+    img = torch.ones(len(pool.keys), 1, H, W, device=flag.device)
+    img[pool.view, 0, row, col] = flag.float()
+    k = 2 * radius + 1
+    eroded = -torch.nn.functional.max_pool2d(-img, k, stride=1, padding=radius)
+    opened = torch.nn.functional.max_pool2d(eroded, k, stride=1, padding=radius)
+    return flag & (opened[pool.view, 0, row, col] > 0.5)
 
 
 @torch.no_grad()

@@ -142,6 +142,9 @@ class MeshConfig:
     # after the initial bake are left out of training (pavemap.mesh.bake.static_pixels): a vehicle passing the
     # camera paints itself onto the road in a few views only. 0: keep every pixel.
     moving_cutoff: float = 0.0
+    # and only where they form a blob this many pixels (at render_scale) from its centre to its edge: paint edges
+    # and texture a centimetre off are thin lines, a vehicle is a blob (bench/moving_bench.py). 0: every pixel.
+    moving_blob_px: int = 2
     bake_final: bool = True
     # Jacobi steps from the weighted mean towards the least-squares colours in the final bake (bake_colours):
     # the mean blurs, the exact solution overfits single pixels.
@@ -202,7 +205,8 @@ class MeshConfig:
                      "pose_align_rounds", "exposure_rounds", "seed", "init_fine_cell_m", "check_holdout_every",
                      "view_range_m", "segment_m", "segment_overlap_m", "segment_revisit_m", "segment_revisit_spacing_m",
                      "segment_min_step_m",
-                     "moving_cutoff", "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height", "lr_pose", "lr_pose_rot",
+                     "moving_cutoff", "moving_blob_px", "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height",
+                     "lr_pose", "lr_pose_rot",
                      "w_rgb", "w_sem", "w_depth", "w_smooth"):
             _require(self, name, lambda v: v >= 0, "must be >= 0")
         for name in ("frame_stride", "pixels_per_step", "height_pixels_per_step", "hidden", "pose_bake_every",

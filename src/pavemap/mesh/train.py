@@ -144,7 +144,7 @@ def _drop_moving(fit: Fit, run: _Run) -> None:
 
     m = fit.model
     keep = static_pixels(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), fit.cfg.max_dist,
-                         fit.cfg.moving_cutoff, fill_sigma=fit.cfg.bake_fill_sigma)
+                         fit.cfg.moving_cutoff, fill_sigma=fit.cfg.bake_fill_sigma, blob_px=fit.cfg.moving_blob_px)
     dropped = int((~keep).sum())
     run.moving_share = dropped / max(1, len(fit.pool))
     if dropped:
