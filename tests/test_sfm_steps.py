@@ -83,3 +83,22 @@ def test_a_road_without_texture_measures_no_step(tmp_path):
     assert len(est) == 2 and not any(e.trusted for e in est)
     fixed, _ = relength_path(T[:, :3, 3], est)
     assert np.array_equal(fixed, T[:, :3, 3])
+
+
+def test_sfm_warns_when_the_road_steps_and_the_ground_points_disagree(monkeypatch, caplog):
+    from pavemap.io import sfm, sfm_scale
+    from pavemap.types import Camera
+
+    cam = Camera("front", 320, 120, np.array([[200.0, 0, 160], [0, 200, 50], [0, 0, 1]]))
+    for factor, warned in ((1.10, True), (1.03, False)):
+        res = sfm.SfmResult(np.tile(np.eye(4), (3, 1, 1)), np.ones(3, bool), 1.0, 0, np.zeros((0, 3)), {})
+        res.T_world_cam[:, :3, 3] = [[i, 0.0, 1.5] for i in range(3)]
+        monkeypatch.setattr(sfm_scale, "refine_scale",
+                            lambda *a, f=factor, **k: (f, np.full(3, 1.5 * f), {"ground_points": 100}))
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="pavemap.io.sfm"):
+            sfm._dense_rescale(res, ["a.png"] * 3, cam, 1.5, None, apply=False)
+        assert ("disagree on the scale by +10 %" in caplog.text) is warned
+        assert res.info["dense_scale"].get("disagrees", False) is warned
+        assert np.allclose(res.T_world_cam[:, 0, 3], [0, 1, 2])  # the road's scale stays
+        assert np.allclose(res.T_world_cam[:, 2, 3], 1.5)  # the road at z = 0 under the cameras
