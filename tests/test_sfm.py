@@ -56,6 +56,11 @@ def test_sfm_trajectory_on_synthetic_kitti_drive(tmp_path):
     R0 = s.frames[0].views["CAM_FRONT"].T_world_cam[:3, :3]
     assert R0[2, 1] < -0.98  # camera y (down) is world -z
     assert seq.frames[-1].views["CAM_FRONT"].T_world_cam[0, 3] > 20  # drove ~29 m along +x
+    # what SfM measured travels with the sequence: each step by SfM and by the road, the checks' figures
+    report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
+    assert report["registered"] == len(truth.frames) and report["checks"]["max_accel_mps2"] is not None
+    assert report["road_steps"]["measured"] >= 0.8 * report["road_steps"]["steps"]
+    assert len(report["road_steps"]["road_m"]) == len(truth.frames) - 1
 
 
 def test_sfm_rejects_too_few_images(tmp_path):

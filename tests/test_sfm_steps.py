@@ -96,8 +96,8 @@ def test_sfm_warns_when_the_road_steps_and_the_ground_points_disagree(monkeypatc
         monkeypatch.setattr(sfm_scale, "refine_scale",
                             lambda *a, f=factor, **k: (f, np.full(3, 1.5 * f), {"ground_points": 100}))
         caplog.clear()
-        with caplog.at_level("WARNING", logger="pavemap.io.sfm"):
-            sfm._dense_rescale(res, ["a.png"] * 3, cam, 1.5, None, apply=False)
+        with caplog.at_level("WARNING", logger="pavemap.io.sfm_scale"):
+            sfm_scale.dense_rescale(res, ["a.png"] * 3, cam, 1.5, None, apply=False)
         assert ("disagree on the scale by +10 %" in caplog.text) is warned
         assert res.info["dense_scale"].get("disagrees", False) is warned
         assert np.allclose(res.T_world_cam[:, 0, 3], [0, 1, 2])  # the road's scale stays

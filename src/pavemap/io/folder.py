@@ -5,19 +5,17 @@
     {"cameras": {"front": {"width": 1920, "height": 1080,
                            "K": [[1400, 0, 959.5], [0, 1400, 539.5], [0, 0, 1]]}}}
 
-(the top-level ``"cameras"`` wrapper is optional). ``poses.csv`` holds one row per image,
-camera-to-world ``T_world_cam`` with OpenCV camera axes (x right, y down, z forward) in a
-metric world with z up; columns, by header name:
+(the top-level ``"cameras"`` wrapper is optional). ``poses.csv`` holds one row per image, camera-to-world
+``T_world_cam`` with OpenCV camera axes (x right, y down, z forward) in a metric world with z up; columns:
 
-- ``frame`` (int, optional: default row order), ``camera`` (optional when there is one
-  camera), ``timestamp`` (seconds, optional), ``image`` (file name relative to the images
-  folder, optional: default the k-th image of that camera in name order);
-- the pose, either ``tx, ty, tz, qw, qx, qy, qz`` (unit quaternion, scalar first) or
-  ``m00 … m23`` (the top three rows of the 4×4, row-major) or ``m00 … m33``.
+- ``frame`` (int, optional: default row order), ``camera`` (optional when there is one camera), ``timestamp``
+  (seconds, optional), ``image`` (relative to the images folder, optional: the k-th image of that camera by name);
+- the pose, either ``tx, ty, tz, qw, qx, qy, qz`` (unit quaternion, scalar first) or ``m00 … m23`` (the top
+  three rows of the 4×4, row-major) or ``m00 … m33``.
 
-Images: ``IMAGES_DIR/*.png|jpg`` for one camera, or ``IMAGES_DIR/<camera>/*`` per camera.
-``poses sfm`` instead of a CSV estimates poses from the images with pycolmap
-(:mod:`pavemap.io.sfm`), scaled by the known camera height above the road.
+Images: ``IMAGES_DIR/*.png|jpg`` for one camera, or ``IMAGES_DIR/<camera>/*`` per camera. ``poses sfm`` instead
+of a CSV estimates poses from the images with pycolmap (:mod:`pavemap.io.sfm`), metric by the known camera
+height above the road, and leaves what it measured in ``sfm.json``.
 """
 
 from __future__ import annotations
@@ -37,6 +35,7 @@ from pavemap.geo.attach import GeoInput, attach_geo
 from pavemap.io.atomic import atomic_path
 from pavemap.io.egomask import resolve_ego_mask, store_ego_masks
 from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, write_sequence
+from pavemap.io.sfm import sfm_poses, write_sfm_report  # pycolmap is imported by sfm_poses, when it runs
 from pavemap.palette import PAVEMAP_CLASSES
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
@@ -245,16 +244,15 @@ def import_folder(
     if fps is not None and not 0 < fps < float("inf"):
         raise PavemapError(f"--fps must be a positive, finite number of frames per second, got {fps}")
 
+    sfm_res = None
     if str(poses).lower() == "sfm":
         if len(cameras) != 1:
             raise PavemapError("--poses sfm supports one camera; give a poses.csv for a multi-camera rig")
         cam = next(iter(cameras.values()))
-        from pavemap.io.sfm import sfm_poses
-
         ego, _ = resolve_ego_mask(ego_mask, per_cam[cam.name], cam.width, cam.height, default_auto=True)
-        res = sfm_poses(per_cam[cam.name], cam, camera_height=camera_height, ego_mask=ego,
-                        refine_intrinsics=refine_intrinsics,
-                        times=None if fps is None else np.arange(len(per_cam[cam.name])) / fps)
+        res = sfm_res = sfm_poses(per_cam[cam.name], cam, camera_height=camera_height, ego_mask=ego,
+                                  refine_intrinsics=refine_intrinsics,
+                                  times=None if fps is None else np.arange(len(per_cam[cam.name])) / fps)
         if refine_intrinsics and res.K is not None:
             cam.K = res.K
         egos = {cam.name: ego}
@@ -313,6 +311,7 @@ def import_folder(
     for src, dst in tqdm(jobs, desc="copy images", unit="img", disable=None):
         copy_image(src, dst)
     store_ego_masks(cameras, egos, out)
+    write_sfm_report(sfm_res, out)
     write_sequence(seq, out)
     return seq
 
@@ -419,8 +418,6 @@ def import_video(
     times = np.asarray(stamps)
     ego = None
     if str(poses).lower() == "sfm":
-        from pavemap.io.sfm import sfm_poses
-
         ego, _ = resolve_ego_mask(None, paths, cam.width, cam.height, default_auto=True)  # bonnet: kept out of SfM
         res = sfm_poses(paths, cam, camera_height=camera_height, ego_mask=ego, times=times)
         Ts = res.T_world_cam
@@ -445,5 +442,6 @@ def import_video(
     seq = Sequence(name or video.stem, list(DEFAULT_CLASSES), {cam.name: cam}, frames)
     attach_geo(seq, geo, poses=poses, per_frame=False)
     store_ego_masks({cam.name: cam}, {cam.name: ego}, out)  # the bonnet found for SfM: masks/<camera>.png
+    write_sfm_report(res if str(poses).lower() == "sfm" else None, out)
     write_sequence(seq, out)
     return seq

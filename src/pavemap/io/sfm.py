@@ -39,6 +39,7 @@ import numpy as np
 
 from pavemap.errors import PavemapError
 from pavemap.io.sfm_checks import SfmChecks, camera_heights, check_sfm, select_keyframes
+from pavemap.io.sfm_scale import dense_rescale, road_relength
 from pavemap.types import Camera
 
 log = logging.getLogger(__name__)
@@ -254,9 +255,9 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         # the road's step lengths set the scale where they measured most of the path; the dense ground
         # points then only measure the heights for the checks (on the KITTI sample, with the road's scale
         # already set, they moved it 4 % away from what they read with the true poses)
-        scaled = road_steps and _road_relength(res, images, camera, camera_height, ego_mask)
+        scaled = road_steps and road_relength(res, images, camera, camera_height, ego_mask)
         if dense_scale:
-            _dense_rescale(res, images, camera, camera_height, ego_mask, apply=not scaled)
+            dense_rescale(res, images, camera, camera_height, ego_mask, apply=not scaled)
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
                                        checks, hint, None if times is None else np.asarray(times)[res.registered])
         _fill_between_keyframes(res, keyframes)
@@ -343,80 +344,19 @@ def _metric_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera,
     return SfmResult(out, registered, float(s), int(drive_over.sum()), pts, info, K)
 
 
-def _road_relength(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
-                   ego_mask: np.ndarray | None, min_share: float = 0.5) -> bool:
-    """Each registered step of ``res`` re-measured on the road (in place); ``info["road_steps"]`` says how.
-
-    True when the road measured at least ``min_share`` of the steps: the path's scale is then the road's.
-    """
-    from pavemap.io.sfm_steps import relength_path, road_steps
-
-    reg = np.flatnonzero(res.registered)
-    T = res.T_world_cam[reg]
-    est = road_steps([images[i] for i in reg], T, camera, camera_height, ego_mask)
-    C = T[:, :3, 3]
-    L = np.linalg.norm(np.diff(C, axis=0), axis=1)
-    C_new, factor = relength_path(C, est)
-    trusted = np.array([e.trusted for e in est], dtype=bool)
-    road = np.array([e.length_m for e in est])
-    moving = trusted & (L > 0.25) & (road > 0.25)
-    ratio = L[moving] / road[moving]
-    res.info["road_steps"] = {
-        "measured": int(trusted.sum()), "steps": len(est),
-        "sfm_m": L.round(2).tolist(), "road_m": [round(e.length_m, 2) if e.trusted else None for e in est],
-        "peak_ncc": [round(e.peak, 3) for e in est],
-        # the SfM's own camera height along the path, as the road's step lengths read it
-        "sfm_height_m": (camera_height * ratio).round(3).tolist(),
-    }
-    if not trusted.any():
-        log.warning("SfM: no step could be measured on the road; keeping the SfM's step lengths")
-        return False
-    overall = float(np.linalg.norm(np.diff(C_new, axis=0), axis=1).sum() / max(L.sum(), 1e-9))
-    T[:, :3, 3] = C_new
-    res.T_world_cam[reg] = T
-    # the sparse points cannot follow a change of scale along the path; they take its overall factor
-    res.points *= overall
-    res.scale *= overall
-    res.info["_heights"] = res.info["_heights"] * overall
-    log.info("SfM: %d of %d steps measured on the road; path length x%.3f", int(trusted.sum()), len(est), overall)
-    return bool(trusted.mean() >= min_share)
+SFM_REPORT = "sfm.json"
 
 
-def _dense_rescale(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
-                   ego_mask: np.ndarray | None, apply: bool = True, max_disagreement: float = 0.05) -> None:
-    """Refine ``res``'s scale in place from densely matched road points; keeps the sparse scale if that fails.
+def write_sfm_report(res: SfmResult | None, out: Path) -> Path | None:
+    """``out/sfm.json``: what SfM measured and checked (registered frames, intrinsics, the sanity checks'
+    figures, each step's length by SfM and by the road, the dense points' heights) beside the sequence it made.
+    Nothing without an SfM result (poses given)."""
+    from pavemap.io.atomic import atomic_write_json
 
-    ``apply`` False: the scale stays; the per-camera heights are measured (for the checks), the road is
-    put at z = 0 and the factor the points would have applied is reported, with a warning past
-    ``max_disagreement`` (the KITTI sample: 3.6 %; the nuScenes clip: 10 %).
-    """
-    from pavemap.io.sfm_scale import refine_scale
-
-    reg = np.flatnonzero(res.registered)
-    T = res.T_world_cam[reg]
-    factor, heights, stats = refine_scale([images[i] for i in reg], T, camera, camera_height, ego_mask)
-    res.info["dense_scale"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in stats.items()}
-    if not np.isfinite(factor):
-        log.warning("SfM: dense road matching failed (%s); keeping the sparse scale", stats.get("reason"))
-        return
-    res.info["dense_scale"]["applied"] = apply
-    if not apply and abs(factor - 1.0) > max_disagreement:
-        # two measurements of one scale: the road's image motion and the ground points' heights
-        log.warning("SfM: the road's step lengths and the dense ground points disagree on the scale by %+.0f %% "
-                    "(the camera %.2f m over the road by the points, %.2f m by the steps): the path's scale is "
-                    "uncertain by that much", 100 * (factor - 1.0), camera_height / factor, camera_height)
-        res.info["dense_scale"]["disagrees"] = True
-    if apply:
-        T[:, :3, 3] *= factor
-        res.points *= factor
-        res.scale *= factor
-    else:
-        heights = heights / factor
-    ok = np.isfinite(heights)
-    # the road at z = 0: shift by the median road level under the cameras
-    T[:, 2, 3] -= float(np.median(T[ok, 2, 3] - heights[ok]))
-    res.T_world_cam[reg] = T
-    res.info["_heights"] = heights
+    if res is None:
+        return None
+    info = {k: v for k, v in res.info.items() if not k.startswith("_")}
+    return atomic_write_json(Path(out) / SFM_REPORT, {"scale_m_per_unit": res.scale, **info})
 
 
 def _fill_between_keyframes(res: SfmResult, keyframes: np.ndarray) -> None:

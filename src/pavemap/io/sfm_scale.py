@@ -1,12 +1,14 @@
-"""Metric scale of an SfM trajectory from the road the camera looks at (dense ground points).
+"""Metric scale of an SfM trajectory from the road the camera looks at.
 
-SIFT finds few points on smooth asphalt (the nuScenes clip: a dozen under the driven path), too
-few to fix the scale from sparse SfM points. Here the road is matched densely instead, with the
-SfM poses held fixed (:func:`pavemap.mesh.ground_points.find_ground_points`: plane-sweep NCC of
-corners, exact for a locally flat road), and the height of every camera over its local road plane
-(:func:`pavemap.mesh.ground_points.estimate_camera_height`) is compared with the known mounting
-height. The sweep's depth search is centred on a provisional scale, so this refines a scale that is
-within a factor ~1.6 already (the sparse estimate); two passes make it converge.
+:func:`road_relength` sets each step's length from the road's image motion (:mod:`pavemap.io.sfm_steps`).
+:func:`dense_rescale` measures the cameras' heights over densely matched road points, which check that
+scale, or set it where the road's steps could not. SIFT finds few points on smooth asphalt (the nuScenes
+clip: a dozen under the driven path), too few to fix the scale from sparse SfM points, so the road is matched
+densely, with the SfM poses held fixed (:func:`pavemap.mesh.ground_points.find_ground_points`: plane-sweep
+NCC of corners, exact for a locally flat road), and the height of every camera over its local road plane
+(:func:`pavemap.mesh.ground_points.estimate_camera_height`) is compared with the known mounting height. The
+sweep's depth search is centred on a provisional scale, so this refines a scale that is within a factor ~1.6
+already (the sparse estimate); two passes make it converge.
 """
 
 from __future__ import annotations
@@ -14,10 +16,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pavemap.types import Camera, Frame, Sequence, View
+
+if TYPE_CHECKING:
+    from pavemap.io.sfm import SfmResult
 
 log = logging.getLogger(__name__)
 
@@ -92,4 +98,78 @@ def refine_scale(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
     return factor, heights, stats
 
 
-__all__ = ["refine_scale", "road_heights"]
+def road_relength(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
+                   ego_mask: np.ndarray | None, min_share: float = 0.5) -> bool:
+    """Each registered step of ``res`` re-measured on the road (in place); ``info["road_steps"]`` says how.
+
+    True when the road measured at least ``min_share`` of the steps: the path's scale is then the road's.
+    """
+    from pavemap.io.sfm_steps import relength_path, road_steps
+
+    reg = np.flatnonzero(res.registered)
+    T = res.T_world_cam[reg]
+    est = road_steps([images[i] for i in reg], T, camera, camera_height, ego_mask)
+    C = T[:, :3, 3]
+    L = np.linalg.norm(np.diff(C, axis=0), axis=1)
+    C_new, factor = relength_path(C, est)
+    trusted = np.array([e.trusted for e in est], dtype=bool)
+    road = np.array([e.length_m for e in est])
+    moving = trusted & (L > 0.25) & (road > 0.25)
+    ratio = L[moving] / road[moving]
+    res.info["road_steps"] = {
+        "measured": int(trusted.sum()), "steps": len(est),
+        "sfm_m": L.round(2).tolist(), "road_m": [round(e.length_m, 2) if e.trusted else None for e in est],
+        "peak_ncc": [round(e.peak, 3) for e in est],
+        # the SfM's own camera height along the path, as the road's step lengths read it
+        "sfm_height_m": (camera_height * ratio).round(3).tolist(),
+    }
+    if not trusted.any():
+        log.warning("SfM: no step could be measured on the road; keeping the SfM's step lengths")
+        return False
+    overall = float(np.linalg.norm(np.diff(C_new, axis=0), axis=1).sum() / max(L.sum(), 1e-9))
+    T[:, :3, 3] = C_new
+    res.T_world_cam[reg] = T
+    # the sparse points cannot follow a change of scale along the path; they take its overall factor
+    res.points *= overall
+    res.scale *= overall
+    res.info["_heights"] = res.info["_heights"] * overall
+    log.info("SfM: %d of %d steps measured on the road; path length x%.3f", int(trusted.sum()), len(est), overall)
+    return bool(trusted.mean() >= min_share)
+
+
+def dense_rescale(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
+                   ego_mask: np.ndarray | None, apply: bool = True, max_disagreement: float = 0.05) -> None:
+    """Refine ``res``'s scale in place from densely matched road points; keeps the sparse scale if that fails.
+
+    ``apply`` False: the scale stays; the per-camera heights are measured (for the checks), the road is
+    put at z = 0 and the factor the points would have applied is reported, with a warning past
+    ``max_disagreement`` (the KITTI sample: 3.6 %; the nuScenes clip: 10 %).
+    """
+    reg = np.flatnonzero(res.registered)
+    T = res.T_world_cam[reg]
+    factor, heights, stats = refine_scale([images[i] for i in reg], T, camera, camera_height, ego_mask)
+    res.info["dense_scale"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in stats.items()}
+    if not np.isfinite(factor):
+        log.warning("SfM: dense road matching failed (%s); keeping the sparse scale", stats.get("reason"))
+        return
+    res.info["dense_scale"]["applied"] = apply
+    if not apply and abs(factor - 1.0) > max_disagreement:
+        # two measurements of one scale: the road's image motion and the ground points' heights
+        log.warning("SfM: the road's step lengths and the dense ground points disagree on the scale by %+.0f %% "
+                    "(the camera %.2f m over the road by the points, %.2f m by the steps): the path's scale is "
+                    "uncertain by that much", 100 * (factor - 1.0), camera_height / factor, camera_height)
+        res.info["dense_scale"]["disagrees"] = True
+    if apply:
+        T[:, :3, 3] *= factor
+        res.points *= factor
+        res.scale *= factor
+    else:
+        heights = heights / factor
+    ok = np.isfinite(heights)
+    # the road at z = 0: shift by the median road level under the cameras
+    T[:, 2, 3] -= float(np.median(T[ok, 2, 3] - heights[ok]))
+    res.T_world_cam[reg] = T
+    res.info["_heights"] = heights
+
+
+__all__ = ["dense_rescale", "refine_scale", "road_heights", "road_relength"]
