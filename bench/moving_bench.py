@@ -45,9 +45,14 @@ def vehicle_box(j: int, W: int, H: int) -> tuple[int, int, int, int]:
 
 def painted_drive(src: Path, dst: Path) -> Path:
     """A copy of ``src`` (images linked) whose frames FIRST.. FIRST+COUNT-1 show the overtaking vehicle."""
+    marker = dst / ".pavemap-moving-bench"
     if dst.exists():
+        if not marker.is_file():  # never delete a folder this benchmark did not write
+            raise SystemExit(f"{dst} exists and was not written by moving_bench.py; move it away or set "
+                             "PAVEMAP_BENCH_DATA")
         shutil.rmtree(dst)
     dst.mkdir(parents=True)
+    marker.write_text("written by bench/moving_bench.py\n")
     shutil.copy(src / "sequence.json", dst / "sequence.json")
     for name in ("semantics", "truth"):
         if (src / name).exists():

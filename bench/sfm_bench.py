@@ -95,12 +95,12 @@ def kitti() -> dict:
 def kitti_true_pose_steps(ims: list[Path], cam: Camera, gt: np.ndarray) -> dict:
     """The road's step lengths with the *true* poses at the nominal 1.65 m: the camera height they imply
     (true step / road step × 1.65), an estimate independent of the triangulated ground points."""
+    from pavemap.io.kitti import kitti_to_world
     from pavemap.io.sfm_steps import road_steps
 
-    A = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # KITTI world (y down) -> z up
-    T = np.tile(np.eye(4), (len(gt), 1, 1))
-    T[:, :3, :3] = A @ gt[:, :, :3]
-    T[:, :3, 3] = gt[:, :, 3] @ A.T
+    T_kitti = np.tile(np.eye(4), (len(gt), 1, 1))
+    T_kitti[:, :3, :] = gt
+    T = kitti_to_world(T_kitti, np.zeros(3))  # cam0 in pavemap's z-up world
     est = road_steps(ims, T, cam, 1.65)
     true = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
     ok = np.array([e.trusted for e in est])

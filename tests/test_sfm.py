@@ -58,9 +58,13 @@ def test_sfm_trajectory_on_synthetic_kitti_drive(tmp_path):
     assert seq.frames[-1].views["CAM_FRONT"].T_world_cam[0, 3] > 20  # drove ~29 m along +x
     # what SfM measured travels with the sequence: each step by SfM and by the road, the checks' figures
     report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
-    assert report["registered"] == len(truth.frames) and report["checks"]["max_accel_mps2"] is not None
-    assert report["road_steps"]["measured"] >= 0.8 * report["road_steps"]["steps"]
-    assert len(report["road_steps"]["road_m"]) == len(truth.frames) - 1
+    assert report["checks"]["max_accel_mps2"] is not None  # the frame times reached the speed check
+    road = report["road_steps"]["road_m"]
+    assert len(road) == len(truth.frames) - 1 and sum(r is not None for r in road) >= 0.8 * len(road)
+    # the report describes the poses written: a measured step is the saved path's step
+    saved = np.linalg.norm(np.diff(est, axis=0), axis=1)
+    measured = np.array([r is not None for r in road])
+    assert np.allclose(saved[measured], [r for r in road if r is not None], atol=0.006)
 
 
 def test_sfm_rejects_too_few_images(tmp_path):

@@ -1,8 +1,7 @@
 """The sequence folder (SPEC §6): reader, writer and validator.
 
-Every input (synthetic, KITTI, nuScenes, a user's own drive) becomes one such folder,
-and every stage reads it. Errors name the file and the problem.
-"""
+Every input (synthetic, KITTI, nuScenes, a user's own drive) becomes one such folder, and every stage reads it.
+Errors name the file and the problem."""
 
 from __future__ import annotations
 
@@ -346,6 +345,16 @@ def load_rgb(path: str | os.PathLike) -> np.ndarray:
             return np.asarray(im.convert("RGB"))
     except _IMAGE_ERRORS as e:
         raise SequenceError(path, f"cannot read image ({e})") from None
+
+
+def load_gray(path: str | os.PathLike, width: int | None = None) -> np.ndarray:
+    """(H, W) uint8 grey, ``width`` px wide (area average, aspect kept) when given; :func:`load_rgb` decodes."""
+    im = cv2.imread(os.fspath(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) \
+        if _is_file(Path(path)) else None
+    im = im if im is not None else cv2.cvtColor(load_rgb(path), cv2.COLOR_RGB2GRAY)  # PIL, or the problem named
+    if width is not None and width != im.shape[1]:
+        im = cv2.resize(im, (width, max(8, round(im.shape[0] * width / im.shape[1]))), interpolation=cv2.INTER_AREA)
+    return im
 
 
 def load_semantics(path: str | os.PathLike) -> np.ndarray:

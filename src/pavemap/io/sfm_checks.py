@@ -60,12 +60,10 @@ def select_keyframes(images: list[Path], min_parallax: float = 0.01, mask: np.nd
         return keep
     keep[0] = True
 
+    from pavemap.io.sequence import load_gray
+
     def load(p: Path) -> np.ndarray:
-        g = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-        if g is None:
-            raise PavemapError(f"{p}: unreadable image")
-        return cv2.resize(g, (work_width, max(8, round(g.shape[0] * work_width / g.shape[1]))),
-                          interpolation=cv2.INTER_AREA)
+        return load_gray(p, work_width)
 
     last = load(images[0])
     m8 = None

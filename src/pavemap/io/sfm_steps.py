@@ -63,37 +63,23 @@ class StepEstimate:
     score: np.ndarray = field(repr=False)
 
 
-def _gray(path: Path, scale: float) -> np.ndarray:
-    import cv2
-
-    from pavemap.errors import PavemapError
-
-    if not Path(path).is_file():
-        raise PavemapError(f"{path}: image not found")
-    g = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if g is None:
-        raise PavemapError(f"{path}: unreadable image")
-    if scale != 1.0:
-        g = cv2.resize(g, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    return g.astype(np.float32) / 255.0
-
-
-def _road_roi(K: np.ndarray, n_cam: np.ndarray, h: float, shape: tuple[int, int], cfg: StepConfig,
-              ego: np.ndarray | None) -> np.ndarray:
-    """(H, W) bool: pixels whose ray meets the road ``near_m``..``far_m`` ahead and at most ``half_width_m``
-    to the side, not on the ego vehicle."""
+def _pixel_rays(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) float64 camera-frame rays K⁻¹ (u, v, 1) of every pixel centre of an image ``shape`` (H, W)."""
     H, W = shape
     u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # (H, W, 3)
+    return np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+
+
+def _road_roi(rays: np.ndarray, n_cam: np.ndarray, h: float, cfg: StepConfig, ego: np.ndarray | None) -> np.ndarray:
+    """(H, W) bool: pixels whose ray (``rays`` (H, W, 3)) meets the road ``near_m``..``far_m`` ahead and at most
+    ``half_width_m`` to the side, not on the ego vehicle."""
     down = rays @ n_cam
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = np.where(down > 1e-6, h / down, np.inf)
+    hit = down > 1e-6
+    lam = np.where(hit, h / np.where(hit, down, 1.0), 0.0)
     # ground point in a frame with the road's normal removed: forward (camera z on the road) and lateral
     fwd = np.array([0.0, 0.0, 1.0]) - n_cam[2] * n_cam
     fwd /= np.linalg.norm(fwd)
     side = np.cross(n_cam, fwd)
-    hit = down > 1e-6
-    lam = np.where(hit, lam, 0.0)
     ahead = lam * (rays @ fwd)
     lateral = lam * (rays @ side)
     roi = hit & (ahead >= cfg.near_m) & (ahead <= cfg.far_m) & (np.abs(lateral) <= cfg.half_width_m)
@@ -204,14 +190,20 @@ def road_steps(images: list[Path], T_world_cam: np.ndarray, camera: Camera, came
     """
     import cv2
 
+    from pavemap.io.sequence import load_gray
+
     cfg = cfg or StepConfig()
-    s = min(1.0, cfg.width / camera.width)
-    K = camera.K.astype(np.float64).copy()
-    K[:2] *= s
-    K[0, 2] += 0.5 * s - 0.5  # pixel centres: (c + 0.5) * s - 0.5
-    K[1, 2] += 0.5 * s - 0.5
-    grays = [_gray(p, s) for p in images]
+    width = max(8, round(camera.width * min(1.0, cfg.width / camera.width)))
+    grays = [load_gray(p, width).astype(np.float32) / 255.0 for p in images]
     Hs, Ws = grays[0].shape
+    # K of the resized image, per axis: a rounded height scales rows slightly unlike columns (KITTI: 0.16 %)
+    sx, sy = Ws / camera.width, Hs / camera.height
+    K = camera.K.astype(np.float64).copy()
+    K[0] *= sx
+    K[1] *= sy
+    K[0, 2] += 0.5 * sx - 0.5  # pixel centres: (c + 0.5) * s - 0.5
+    K[1, 2] += 0.5 * sy - 0.5
+    rays = _pixel_rays(K, (Hs, Ws))
     ego = None
     if ego_mask is not None and ego_mask.any():
         ego = cv2.resize(ego_mask.astype(np.uint8), (Ws, Hs), interpolation=cv2.INTER_NEAREST) > 0
@@ -230,7 +222,7 @@ def road_steps(images: list[Path], T_world_cam: np.ndarray, camera: Camera, came
         # world's up alone leaves the mount's pitch to the road in it (0.8 deg made KITTI's steps 20 % long)
         n_w = up - (up @ dir_w) * dir_w if L > 1e-6 else up
         n_w /= np.linalg.norm(n_w)
-        roi = _road_roi(K, -Rb.T @ n_w, camera_height, (Hs, Ws), cfg, ego)
+        roi = _road_roi(rays, -Rb.T @ n_w, camera_height, cfg, ego)
         if roi.sum() < 500:
             out.append(StepEstimate(float("nan"), float("nan"), 0.0, False, np.zeros(0), np.zeros(0)))
             continue

@@ -226,12 +226,17 @@ def _opened(flag: torch.Tensor, pool: PixelPool, radius: int) -> torch.Tensor:
     col = pool.uv[:, 0].floor().long().clamp(min=0)
     row = pool.uv[:, 1].floor().long().clamp(min=0)
     H, W = int(row.max()) + 1, int(col.max()) + 1
-    img = torch.ones(len(pool.keys), 1, H, W, device=flag.device)
-    img[pool.view, 0, row, col] = flag.float()
     k = 2 * radius + 1
-    eroded = -torch.nn.functional.max_pool2d(-img, k, stride=1, padding=radius)
-    opened = torch.nn.functional.max_pool2d(eroded, k, stride=1, padding=radius)
-    return flag & (opened[pool.view, 0, row, col] > 0.5)
+    out = torch.zeros_like(flag)
+    chunk = max(1, (64 << 20) // (4 * H * W))  # views a 64 MiB canvas holds: a long drive has thousands
+    for v0 in range(0, len(pool.keys), chunk):
+        sel = (pool.view >= v0) & (pool.view < v0 + chunk)
+        img = torch.ones(chunk, 1, H, W, device=flag.device)
+        img[pool.view[sel] - v0, 0, row[sel], col[sel]] = flag[sel].float()
+        eroded = -torch.nn.functional.max_pool2d(-img, k, stride=1, padding=radius)
+        opened = torch.nn.functional.max_pool2d(eroded, k, stride=1, padding=radius)
+        out[sel] = opened[pool.view[sel] - v0, 0, row[sel], col[sel]] > 0.5
+    return flag & out
 
 
 @torch.no_grad()
