@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from pavemap.errors import PavemapError
 from pavemap.geometry.triangulate import plane_homography
 from pavemap.io.sfm_steps import StepConfig, StepEstimate, relength_path, road_steps, sweep_step
 
@@ -81,6 +83,9 @@ def test_a_road_without_texture_measures_no_step(tmp_path):
     T[:, :3, 3] = [[i * 1.0, 0, 1.5] for i in range(3)]
     est = road_steps(paths, T, cam, 1.5)
     assert len(est) == 2 and not any(e.trusted for e in est)
+    Image.fromarray(np.full((100, 320), 128, np.uint8)).save(paths[1])  # one image of another size
+    with pytest.raises(PavemapError, match=r"1\.png: image is not 320x120"):
+        road_steps(paths, T, cam, 1.5)
     fixed, _ = relength_path(T[:, :3, 3], est)
     assert np.array_equal(fixed, T[:, :3, 3])
 

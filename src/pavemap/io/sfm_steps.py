@@ -195,7 +195,12 @@ def road_steps(images: list[Path], T_world_cam: np.ndarray, camera: Camera, came
     cfg = cfg or StepConfig()
     width = max(8, round(camera.width * min(1.0, cfg.width / camera.width)))
     grays = [load_gray(p, width).astype(np.float32) / 255.0 for p in images]
-    Hs, Ws = grays[0].shape
+    Hs, Ws = max(8, round(camera.height * width / camera.width)), width
+    for p, g in zip(images, grays, strict=True):
+        if g.shape != (Hs, Ws):  # the camera's size, as load_gray resizes it
+            from pavemap.errors import PavemapError
+
+            raise PavemapError(f"{p}: image is not {camera.width}x{camera.height}, the size of camera {camera.name}")
     # K of the resized image, per axis: a rounded height scales rows slightly unlike columns (KITTI: 0.16 %)
     sx, sy = Ws / camera.width, Hs / camera.height
     K = camera.K.astype(np.float64).copy()
