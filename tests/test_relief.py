@@ -118,3 +118,61 @@ def test_held_out_ground_points_are_disjoint_and_keep_their_observations():
     for part in (fit, check):  # each observation still points at its own point
         assert np.array_equal(part.points[part.obs_point, 0], part.obs_uv[:, 0])
         assert np.array_equal(part.obs_depth, part.obs_uv[:, 0] * 0.5)
+
+
+def _kerb_drive(gap: tuple[float, float]) -> tuple[np.ndarray, ...]:
+    """Points on the road and the sidewalk of :func:`_cross_section` but none within ``gap`` of t (the kerb at
+    t = -5 and the ground beside it, as forward cameras leave it), and a query lattice over all of it."""
+    rng = np.random.default_rng(3)
+    s, t = rng.uniform(0, 100, 3000), rng.uniform(-9, 7, 3000)
+    keep = (t > gap[1]) | (t < gap[0])
+    s, t = s[keep], t[keep]
+    qs, qt = np.meshgrid(np.arange(2, 98, 0.25), np.arange(-8.5, 6.5, 0.1))
+    return s, t, _cross_section(t, s) + rng.normal(0, 0.004, len(s)), qs.ravel(), qt.ravel()
+
+
+def test_the_fit_steps_where_the_sides_change_instead_of_rounding_the_kerb_off():
+    s, t, r, qs, qt = _kerb_drive((-6.0, -4.0))
+    side = np.where(qt >= -5.0, 1, 0)
+    side[(qs > 60) & (qs < 62)] = -1  # vertices no labelled pixel reached: no break there
+    truth, near = _cross_section(qt, qs), np.abs(qt + 5.0) < 1.0
+    rounded = fit_relief(s, t, r, qs, qt) - truth
+    stepped = fit_relief(s, t, r, qs, qt, side_q=side) - truth
+    rms = lambda e, m: float(np.sqrt(np.mean(e[m] ** 2)))  # noqa: E731
+    assert rms(rounded, near) > 0.03  # the smooth fit spreads the 0.12 m step over the gap
+    assert rms(stepped, near) < 0.02
+    assert rms(stepped, ~near) <= rms(rounded, ~near) + 0.001  # and nothing gets worse away from the kerb
+    # one side only: nothing to break
+    assert np.allclose(fit_relief(s, t, r, qs, qt, side_q=np.ones_like(side)), rounded + truth, atol=1e-6)
+
+
+def test_a_refit_from_the_first_fits_weights_matches_a_fit_from_scratch_in_fewer_rounds(monkeypatch):
+    import pavemap.mesh.relief as relief
+
+    s, t, r, qs, qt = _kerb_drive((-5.6, -4.4))
+    side = np.where(qt >= -5.0, 1, 0)
+    solves = []
+    solve = relief._solve_spd
+    monkeypatch.setattr(relief, "_solve_spd", lambda *a, **k: solves.append(1) or solve(*a, **k))
+    state: dict = {}
+    fit_relief(s, t, r, qs, qt, state=state)
+    assert len(solves) == ReliefFit().iterations and state["w"].shape == r.shape
+    solves.clear()
+    warm = fit_relief(s, t, r, qs, qt, side_q=side, state=state)
+    assert len(solves) == ReliefFit().refit_iterations
+    cold = fit_relief(s, t, r, qs, qt, side_q=side)
+    assert np.sqrt(np.mean((warm - cold) ** 2)) < 0.002
+
+
+def test_a_few_points_far_off_the_road_leave_no_bump():
+    rng = np.random.default_rng(4)
+    s, t = rng.uniform(0, 100, 1500), rng.uniform(-4, 4, 1500)
+    r = _cross_section(t, s) + rng.normal(0, 0.004, len(s))
+    so, to = 50 + rng.normal(0, 0.3, 6), 1 + rng.normal(0, 0.2, 6)  # a car's bonnet matched as ground
+    S, T, R = np.r_[s, so], np.r_[t, to], np.r_[r, _cross_section(to, so) + 0.35]
+    qs, qt = np.meshgrid(np.arange(45, 55, 0.1), np.arange(-1, 3, 0.1))
+    qs, qt = qs.ravel(), qt.ravel()
+    huber = fit_relief(S, T, R, qs, qt, ReliefFit(reject_m=np.inf)) - _cross_section(qt, qs)
+    rejected = fit_relief(S, T, R, qs, qt) - _cross_section(qt, qs)
+    assert np.abs(huber).max() > 0.02  # Huber's linear tail still lets six points lift the road
+    assert np.abs(rejected).max() < 0.008

@@ -31,23 +31,35 @@ from pavemap.mesh.render import view_rays
 
 
 def initial_heights(pool: PixelPool, grid: MeshGrid, traj: np.ndarray, cam_h: float, cfg: MeshConfig,
-                    ground_points: np.ndarray | None = None) -> np.ndarray:
+                    ground_points: np.ndarray | None = None, vertex_side: np.ndarray | None = None,
+                    relief_state: dict | None = None) -> np.ndarray:
     """(Nv,) float32 starting heights of the kept vertices (compact order).
 
     The plane ``cam_h`` under the trajectory ``traj`` (F, 3) (camera centres per frame), plus, with
     ``cfg.init_from_depth``, the relief of the measured ground: the pool's depth pixels cast on its poses
-    ``pool.T`` and the extra world points ``ground_points`` (N, 3) when given.
+    ``pool.T`` and the extra world points ``ground_points`` (N, 3) when given. ``vertex_side`` (Nv,) int: 1 on the
+    road-class vertices, 0 on the others, -1 unknown; the road relief may step where it changes
+    (:func:`pavemap.mesh.relief.fit_relief`).
+    ``relief_state``: a dict the first call fills with its points and the fit's robust weights; a second call
+    with it (the kerb refit) fits the same points from those weights.
     """
     ground_z = traj[:, 2] - cam_h
     z = ground_under_trajectory(grid, traj[:, :2], ground_z)
     if not cfg.init_from_depth:
         return z
-    sources = [p for p in (depth_points(pool, seed=cfg.seed), ground_points) if p is not None and len(p)]
-    if not sources:
-        return z
-    relief = depth_relief(np.concatenate(sources), grid, traj, ground_z, cfg.init_cell_m,
+    if relief_state is not None and "points" in relief_state:
+        pts = relief_state["points"]  # a refit: the same points as the first fit, whose weights it starts from
+    else:
+        sources = [p for p in (depth_points(pool, seed=cfg.seed), ground_points) if p is not None and len(p)]
+        if not sources:
+            return z
+        pts = np.concatenate(sources)
+        if relief_state is not None:
+            relief_state["points"] = pts
+    relief = depth_relief(pts, grid, traj, ground_z, cfg.init_cell_m,
                           fine_cell=cfg.init_fine_cell_m, fill_sigmas=(1.0, 2.0, 4.0),
-                          along_sigma_m=cfg.init_along_fill_m, method=cfg.init_relief)
+                          along_sigma_m=cfg.init_along_fill_m, method=cfg.init_relief, vertex_side=vertex_side,
+                          relief_state=relief_state)
     return z if relief is None else z + relief
 
 
@@ -183,7 +195,8 @@ def idw_ground(traj_xy: np.ndarray, ground_z: np.ndarray, xy: np.ndarray, k: int
 def depth_relief(pts: np.ndarray, grid: MeshGrid, traj: np.ndarray, ground_z: np.ndarray, cell: float,
                  gate: float = 0.5, fine_cell: float = 0.0, fine_min: int = 3,
                  fill_sigmas: tuple[float, ...] = (1.0,), along_sigma_m: float = 0.0,
-                 method: str = "bins") -> np.ndarray | None:
+                 method: str = "bins", vertex_side: np.ndarray | None = None, relief_state: dict | None = None
+                 ) -> np.ndarray | None:
     """(Nv,) float32 relief of measured ground points ``pts`` (N, 3) relative to the trajectory plane (the
     ground ``ground_z`` (F,) under ``traj`` (F, 3)), at the kept vertices; None with fewer than 100 usable.
 
@@ -200,7 +213,7 @@ def depth_relief(pts: np.ndarray, grid: MeshGrid, traj: np.ndarray, ground_z: np
     r = pts[:, 2] - idw_ground(traj[:, :2], ground_z, pts[:, :2])
     moving = len(traj) >= 2 and np.linalg.norm(np.diff(traj[:, :2], axis=0), axis=1).sum() > 2 * cell
     if method == "road" and moving:
-        relief = road_relief(traj[:, :2], pts[:, :2], r, grid.vertex_xy())
+        relief = road_relief(traj[:, :2], pts[:, :2], r, grid.vertex_xy(), side_q=vertex_side, state=relief_state)
         if relief is not None:
             return relief.astype(np.float32)
     px, py = pts[:, 0] - g.x0, pts[:, 1] - g.y0  # offsets from the grid origin
@@ -367,7 +380,8 @@ def along_track(traj_xy: np.ndarray, xy: np.ndarray, step: float = 0.1) -> tuple
 
 
 def road_relief(traj_xy: np.ndarray, pts_xy: np.ndarray, r: np.ndarray, q_xy: np.ndarray,
-                fit: ReliefFit | None = None) -> np.ndarray | None:
+                fit: ReliefFit | None = None, side_q: np.ndarray | None = None, state: dict | None = None
+                ) -> np.ndarray | None:
     """(Q,) float64 relief at ``q_xy`` (Q, 2) from the residuals ``r`` (N,) of points at ``pts_xy`` (N, 2),
     fitted in road coordinates (:func:`pavemap.mesh.relief.fit_relief`) pass by pass: each pass of
     ``traj_xy`` (F, 2) fits the points and query points nearest to it. 0 where a pass has too few points;
@@ -382,7 +396,8 @@ def road_relief(traj_xy: np.ndarray, pts_xy: np.ndarray, r: np.ndarray, q_xy: np
     out, fitted = np.zeros(len(q_xy)), False
     for k in np.unique(k_q):
         qi, pi = k_q == k, k_p == k
-        rel = fit_relief(s_p[pi], t_p[pi], r[pi], s_q[qi], t_q[qi], fit)
+        rel = fit_relief(s_p[pi], t_p[pi], r[pi], s_q[qi], t_q[qi], fit, side_q=None if side_q is None else side_q[qi],
+                         state=None if state is None else state.setdefault(("pass", int(k)), {}))
         if rel is not None:
             out[qi], fitted = rel, True
     return out if fitted else None

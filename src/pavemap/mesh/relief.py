@@ -41,9 +41,15 @@ class ReliefFit:
     robust_k: float = 2.5
     sigma_floor: float = 0.005  # m: the robust scale never drops below this
     iterations: int = 4
+    refit_iterations: int = 2  # rounds of a fit that starts from an earlier fit's weights (``state``)
     margin_s: float = 5.0  # the lattice reaches this far beyond the query points along the road ...
     margin_t: float = 4.0  # ... and across it: points just outside the crop still hold its edge
     max_nodes: int = 4_000_000  # a longer drive is cut into segments before stage 1 (see the README)
+    # a point farther off the fit than both of these after a round is not ground (weight 0 in the next): a
+    # car's bonnet, a mismatch; relative too, so that noisy points (poses off by decimetres) are not thinned
+    reject_m: float = 0.10
+    reject_k: float = 6.0
+    break_weight: float = 0.001  # bending and slope between nodes of different sides (``side_q``), relative
 
 
 def _bilinear(s: np.ndarray, t: np.ndarray, s0: float, t0: float, fit: ReliefFit, ns: int, nt: int) -> sp.csr_matrix:
@@ -73,12 +79,21 @@ def _difference(ns: int, nt: int, axis: int, order: int) -> sp.csr_matrix:
 
 
 def fit_relief(s_pts: np.ndarray, t_pts: np.ndarray, r: np.ndarray, s_q: np.ndarray, t_q: np.ndarray,
-               fit: ReliefFit | None = None, min_points: int = 100) -> np.ndarray | None:
+               fit: ReliefFit | None = None, min_points: int = 100, side_q: np.ndarray | None = None,
+               state: dict | None = None) -> np.ndarray | None:
     """(Q,) float64 relief at query points (s_q, t_q) (Q,) from point residuals r (N,) at (s_pts, t_pts) (N,).
 
     r: the points' heights minus the trajectory plane (m). The lattice spans the query points; points outside
     it or beyond ``fit.gate`` are left out. None with fewer than ``min_points`` usable points, or a lattice
     over ``fit.max_nodes`` nodes (the caller falls back to its binned relief).
+
+    side_q (Q,) int, optional: the surface each query point lies on (e.g. 1 a road class, 0 any other; -1 not
+    known). Each node takes the most common side of its query points, and the bending and slope terms between
+    nodes of different sides are weighted by ``fit.break_weight``: the surface may step there, as at a kerb,
+    instead of rounding the step off over the metre or two where forward cameras leave no point.
+
+    state: a dict that keeps the points' robust weights between two fits of the same points; a second fit
+    starts from the first one's weights and runs ``fit.refit_iterations`` rounds.
     """
     fit = fit or ReliefFit()
     s0, s1 = float(s_q.min()) - fit.margin_s, float(s_q.max()) + fit.margin_s
@@ -89,16 +104,23 @@ def fit_relief(s_pts: np.ndarray, t_pts: np.ndarray, r: np.ndarray, s_q: np.ndar
         return None
     A = _bilinear(s_pts[ok], t_pts[ok], s0, t0, fit, ns, nt)
     rr = r[ok]
-    reg = (fit.curv_s ** 2 * _gram(_difference(ns, nt, 0, 2)) + fit.curv_t ** 2 * _gram(_difference(ns, nt, 1, 2))
-           + fit.slope ** 2 * (_gram(_difference(ns, nt, 0, 1)) + _gram(_difference(ns, nt, 1, 1))))
-    w = np.ones(len(rr))
+    node_side = None if side_q is None else _node_side(s_q, t_q, side_q, s0, t0, fit, ns, nt)
+    reg = sum(k ** 2 * _gram(_difference(ns, nt, axis, order), node_side, fit.break_weight)
+              for k, axis, order in ((fit.curv_s, 0, 2), (fit.curv_t, 1, 2), (fit.slope, 0, 1), (fit.slope, 1, 1)))
+    w, rounds = np.ones(len(rr)), fit.iterations
+    if state is not None and state.get("w") is not None and len(state["w"]) == len(r):
+        w, rounds = state["w"][ok], fit.refit_iterations
     values = np.zeros(ns * nt)
-    for _ in range(max(1, fit.iterations)):
+    for _ in range(max(1, rounds)):
         W = sp.diags(w)
         values = _solve_spd((A.T @ W @ A + reg).tocsr(), A.T @ (w * rr), ns, nt)
         res = A @ values - rr
         sigma = max(1.4826 * float(np.median(np.abs(res))), fit.sigma_floor)
         w = 1.0 / np.maximum(1.0, np.abs(res) / (fit.robust_k * sigma))  # Huber: linear beyond k sigma
+        w[np.abs(res) > max(fit.reject_m, fit.reject_k * sigma)] = 0.0  # Huber alone left a 6-8 cm bump
+    if state is not None:
+        state["w"] = np.zeros(len(r))
+        state["w"][ok] = w
     return _bilinear(s_q, t_q, s0, t0, fit, ns, nt) @ values
 
 
@@ -159,8 +181,32 @@ def _refined(C: sp.csr_matrix, coo: sp.coo_matrix, upper: np.ndarray, bw: int, b
     return None
 
 
-def _gram(D: sp.csr_matrix) -> sp.csr_matrix:
-    return (D.T @ D).tocsr()
+def _node_side(s_q: np.ndarray, t_q: np.ndarray, side_q: np.ndarray, s0: float, t0: float, fit: ReliefFit,
+               ns: int, nt: int) -> np.ndarray:
+    """(ns * nt,) int64 side of each lattice node: the most common among the query points nearest to it that
+    know theirs, -1 where none does (no break there)."""
+    a = np.clip(np.rint((s_q - s0) / fit.ds).astype(np.int64), 0, ns - 1)
+    b = np.clip(np.rint((t_q - t0) / fit.dt).astype(np.int64), 0, nt - 1)
+    known = side_q >= 0
+    node, side = (a * nt + b)[known], side_q[known].astype(np.int64)
+    k = int(side.max(initial=0)) + 1
+    counts = np.bincount(node * k + side, minlength=ns * nt * k).reshape(ns * nt, k)
+    return np.where(counts.any(1), counts.argmax(1), -1)
+
+
+def _gram(D: sp.csr_matrix, node_side: np.ndarray | None = None, break_weight: float = 1.0) -> sp.csr_matrix:
+    """D^T W D, W down-weighting the rows (differences) that reach nodes of both sides."""
+    if node_side is None:
+        return (D.T @ D).tocsr()
+    Dc = D.tocoo()
+    side = node_side[Dc.col]
+    big = np.iinfo(np.int64).max
+    lo, hi = np.full(D.shape[0], big), np.full(D.shape[0], -1)
+    known = side >= 0
+    np.minimum.at(lo, Dc.row[known], side[known])
+    np.maximum.at(hi, Dc.row[known], side[known])
+    w = np.where((hi >= 0) & (lo < hi), break_weight, 1.0)
+    return (D.T @ sp.diags(w) @ D).tocsr()
 
 
 __all__ = ["ReliefFit", "fit_relief"]

@@ -93,6 +93,7 @@ class _Run:
     samples: np.ndarray | None = None  # (N, 3) the height measurements (_samples)
     exposure: torch.Tensor | None = None  # (V, 2) the training views' gain and offset (final bake)
     init_hits: list | None = None  # the visible-pixel march on the initial surface, for the initial bake
+    relief_state: dict | None = None  # the initial relief fit's point weights, for the kerb refit
 
     def warn(self, msg: str) -> None:
         self.notes.append(msg)
@@ -116,9 +117,11 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     geo = find_geometry(seq, data, cfg, warn)
     if geo.observable and cfg.ground_points_use in ("depth", "both"):
         data.pool, data.use_depth = add_point_depth(data.pool, geo.gp, cfg.render_scale), True
-    z_vertices = initial_heights(data.pool, data.grid, data.traj, geo.cam_h, cfg, ground_points=geo.init_points(cfg))
+    relief_state: dict = {}
+    z_vertices = initial_heights(data.pool, data.grid, data.traj, geo.cam_h, cfg, ground_points=geo.init_points(cfg),
+                                 relief_state=relief_state)
     run = _Run(data, float(np.median(z_vertices)), geo.cam_h, geo, device, notes, t_start,
-               torch.Generator().manual_seed(cfg.seed + 1))
+               torch.Generator().manual_seed(cfg.seed + 1), relief_state=relief_state)
     fit = _make_fit(run, cfg, z_vertices, seq.name, warn)
     if out_dir is not None and cfg.resume and fit.opt is not None and (Path(out_dir) / CHECKPOINT).is_file():
         _resume(fit, run, Path(out_dir), warn)
@@ -130,12 +133,41 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     if cfg.bake_init and run.done.epoch == 0:
         bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits,
                   semantics=fit.use_sem)
+        if _kerb_refit(fit, run, geo.init_points(cfg)) and cfg.epochs > 0:
+            bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
+                      semantics=fit.use_sem)
     run.init_hits = None  # freed before training
+    run.relief_state = None
     history, schedule = _train(fit, run, out_dir, progress)
     mesh, metrics = _finish(fit, run, seq, history, schedule)
     if out_dir is not None:
         write_outputs(Path(out_dir), mesh, metrics, data.classes)
     return mesh, metrics
+
+
+@torch.no_grad()
+def _kerb_refit(fit: Fit, run: _Run, points: np.ndarray | None) -> bool:
+    """Fit the initial relief again, free to step where the baked classes change between road and not
+    (``mesh.kerb_steps``); True if the surface was replaced. A vertex is off the road where at least
+    ``mesh.kerb_off_share`` of its pixels' votes say so: the vertex at the foot of a kerb's face also collects
+    the face's pixels, and a bare majority put the step a cell early on the road."""
+    cfg, data, m = fit.cfg, run.data, fit.model
+    if not (cfg.kerb_steps and fit.use_sem and cfg.init_from_depth and cfg.init_relief == "road"
+            and m.sem.shape[1] and run.geo.observable):
+        return False
+    is_road = torch.tensor([c.road for c in data.classes])
+    sem = m.sem.detach().cpu()
+    p_off = torch.softmax(sem, dim=1)[:, ~is_road].sum(dim=1)
+    side = (p_off < cfg.kerb_off_share).numpy().astype(np.int64)
+    side[~(sem != 0).any(dim=1).numpy()] = -1  # no labelled pixel reached it
+    other = torch.tensor([c.movable or c.sky for c in data.classes])
+    side[other[sem.argmax(dim=1)].numpy()] = -1  # a car is no kerb: its points must not get an island of its own
+    if len(np.unique(side[side >= 0])) < 2:
+        return False
+    z = initial_heights(data.pool, data.grid, data.traj, run.cam_h, cfg, ground_points=points, vertex_side=side,
+                        relief_state=run.relief_state)
+    m.z_base.copy_(torch.as_tensor(z, dtype=m.z_base.dtype, device=m.z_base.device))
+    return True
 
 
 def _drop_moving(fit: Fit, run: _Run) -> None:
@@ -159,7 +191,7 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
             ) -> tuple[RoadMesh, dict]:
     """The final bake, the mesh, and the run's metrics."""
     cfg, data = fit.cfg, run.data
-    if cfg.anchor_to_points:
+    if cfg.anchor_to_points and cfg.epochs > 0:  # without training the surface is the points' fit already
         _anchor(fit, run)
     seen = None
     if cfg.bake_final:
