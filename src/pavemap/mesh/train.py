@@ -152,8 +152,8 @@ def _kerb_refit(fit: Fit, run: _Run, points: np.ndarray | None) -> bool:
     ``mesh.kerb_off_share`` of its pixels' votes say so: the vertex at the foot of a kerb's face also collects
     the face's pixels, and a bare majority put the step a cell early on the road."""
     cfg, data, m = fit.cfg, run.data, fit.model
-    if not (cfg.kerb_steps and fit.use_sem and cfg.init_from_depth and cfg.init_relief == "road"
-            and m.sem.shape[1] and run.geo.observable):
+    if not (cfg.kerb_steps and fit.use_sem and cfg.init_relief == "road" and m.sem.shape[1]
+            and run.relief_state and "points" in run.relief_state):  # the relief was fitted to measurements
         return False
     is_road = torch.tensor([c.road for c in data.classes])
     sem = m.sem.detach().cpu()
