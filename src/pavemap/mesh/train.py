@@ -133,7 +133,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     if cfg.bake_init and run.done.epoch == 0:
         bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits,
                   semantics=fit.use_sem)
-        if _kerb_refit(fit, run, geo.init_points(cfg)) and cfg.epochs > 0:
+        if _kerb_refit(fit, run) and cfg.epochs > 0:
             bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
                       semantics=fit.use_sem)
     run.init_hits = None  # freed before training
@@ -146,7 +146,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
 
 
 @torch.no_grad()
-def _kerb_refit(fit: Fit, run: _Run, points: np.ndarray | None) -> bool:
+def _kerb_refit(fit: Fit, run: _Run) -> bool:
     """Fit the initial relief again, free to step where the baked classes change between road and not
     (``mesh.kerb_steps``); True if the surface was replaced. A vertex is off the road where at least
     ``mesh.kerb_off_share`` of its pixels' votes say so: the vertex at the foot of a kerb's face also collects
@@ -164,7 +164,8 @@ def _kerb_refit(fit: Fit, run: _Run, points: np.ndarray | None) -> bool:
     side[other[sem.argmax(dim=1)].numpy()] = -1  # a car is no kerb: its points must not get an island of its own
     if len(np.unique(side[side >= 0])) < 2:
         return False
-    z = initial_heights(data.pool, data.grid, data.traj, run.cam_h, cfg, ground_points=points, vertex_side=side,
+    # the points come from relief_state: the same ones the first fit used
+    z = initial_heights(data.pool, data.grid, data.traj, run.cam_h, cfg, vertex_side=side,
                         relief_state=run.relief_state)
     m.z_base.copy_(torch.as_tensor(z, dtype=m.z_base.dtype, device=m.z_base.device))
     return True
