@@ -12,6 +12,10 @@ the clean and the painted drive with the rejection off and the settings given. M
   the held-out PSNR, the height RMSE over observed vertices and the share of training pixels left out, on
   both drives (on the clean drive every pixel left out is a false rejection).
 
+And where the final-texture check (``mesh.texture_check``, on by default) says the texture may hold a vehicle:
+the share of the vehicle cells it marks, how many marked cells lie more than 3 cells off the imprint, and what
+it marks on the clean drive (every mark there is false).
+
 Drives from ``mesh_bench`` (PAVEMAP_BENCH_DATA, default /tmp/pavemap-bench). Run it alone, niced.
 """
 
@@ -85,7 +89,16 @@ def stage_one(seq_dir: Path, out: Path, cutoff: float, blob: int) -> dict:
     _, m = reconstruct(read_sequence(seq_dir), out, cfg, progress=False)
     return {"seconds": round(time.perf_counter() - t, 1), "psnr_db": m["psnr"],
             "height_rmse_seen_m": m.get("height_rmse_seen"), "moving_pixel_share": m.get("moving_pixel_share"),
+            "texture_check": {k: v for k, v in (m.get("texture_check") or {}).items() if k != "patches"},
+            "texture_check_top_patch": ((m.get("texture_check") or {}).get("patches") or [None])[0],
             "warnings": [w for w in m["warnings"] if "disagree" in w]}
+
+
+def _grown(mask: np.ndarray, cells: int = 3) -> np.ndarray:
+    """``mask`` dilated by ``cells`` (a flag just beside the imprint is on the vehicle's edge, not elsewhere)."""
+    from scipy import ndimage
+
+    return ndimage.binary_dilation(mask, iterations=cells)
 
 
 def main() -> None:
@@ -96,15 +109,19 @@ def main() -> None:
     clean = bench_drive(data, "kitti-like", "none", "cpu")
     painted = painted_drive(clean, data / "moving-kitti-like-none")
     work = data / "moving-runs"
-    runs, bev = {}, {}
+    runs, bev, flagged = {}, {}, {}
     keys = ["off", *(f"{c:g}:{b}" for c, b in settings)]
     for name, seq_dir in (("clean", clean), ("painted", painted)):
         for key, (c, b) in zip(keys, [(0.0, 0), *settings], strict=True):
             runs[f"{name} {key}"] = stage_one(seq_dir, work / f"{name}-{c:g}-{b}", c, b)
             # the BEV texture as stored (uint8), on a 0-1 scale
             bev[f"{name} {key}"] = np.load(work / f"{name}-{c:g}-{b}" / "bev_rgb.npy").astype(np.float64) / 255.0
+            flagged[f"{name} {key}"] = np.load(work / f"{name}-{c:g}-{b}" / "bev_contested.npy")
             print(name, key, json.dumps(runs[f"{name} {key}"]), flush=True)
     cells = np.abs(bev["painted off"] - bev["clean off"]).mean(-1) > 0.04
+    from scipy import ndimage
+
+    blob = ndimage.binary_opening(cells, structure=np.ones((3, 3), bool))
     res = {"vehicle_frames": [FIRST, FIRST + COUNT - 1], "vehicle_cells": int(cells.sum()), "runs": runs,
            "texture": {}}
     for key in keys:
@@ -112,6 +129,18 @@ def main() -> None:
         res["texture"][key] = {"mean_diff_vehicle_cells": round(float(d[cells].mean()), 4),
                                "vehicle_cells_still_differing": int((d[cells] > 0.04).sum()),
                                "mean_diff_elsewhere": round(float(d[~cells].mean()), 5)}
+        # where the report says the texture may hold a vehicle: how much of the imprint, and what else
+        still = cells & (d > 0.04)
+        f, fc = flagged[f"painted {key}"], flagged[f"clean {key}"]
+        res["texture"][key]["contested"] = {
+            "vehicle_cells_flagged": round(float(f[cells].mean()), 4),
+            # the imprint proper: the vehicle cells opened by a 3 x 3 square (most other vehicle cells are thin
+            # lines along paint and kerbs, the two runs' textures a pixel apart, not the vehicle)
+            "imprint_blob_cells": int(blob.sum()), "imprint_blob_flagged": round(float(f[blob].mean()), 4),
+            "vehicle_cells_within_1m_of_a_flag": round(float(_grown(f, 10)[cells].mean()), 4),
+            "imprint_left_flagged": round(float(f[still].mean()), 4) if still.any() else None,
+            "painted_flagged_cells": int(f.sum()), "painted_flagged_off_vehicle": int((f & ~_grown(cells)).sum()),
+            "clean_flagged_cells": int(fc.sum())}
     res.update(machine_entry())
     write_results(OUT, res)
     print(json.dumps(res["texture"], indent=1))

@@ -289,3 +289,42 @@ def test_only_blobs_of_disagreeing_pixels_are_taken_for_vehicles():
     assert out[10:16, 5:12].all()  # the blob stays whole
     assert not out[3].any() and not out[12, 20:23].any()  # the line and the speck go
     assert not (out & ~flag).any()
+
+
+def test_texture_check_marks_where_a_vehicle_is_in_the_texture_and_nothing_on_a_clean_road(seq):
+    """The final-texture check (pavemap.mesh.texture_check): a vehicle painted into four views' road pixels is
+    baked into the texture; a patch of contested squares lies where it landed, the clean road has none."""
+    import dataclasses
+
+    from pavemap.mesh.bake import pixel_residuals
+    from pavemap.mesh.texture_check import check_texture, contested_patches
+
+    g, _, heights = _true_surface(seq)
+    pool = _all_views_pool(seq)
+    surf = _field(g, heights)
+
+    def check(p):  # noqa: ANN001, ANN202
+        rgb = bake_colours(surf, p, p.T, 60.0)[0]
+        return check_texture(surf, p, p.T, 60.0, rgb, None, cutoff=0.15, blob_px=1, min_share=0.1, min_views=2,
+                             block=5)
+
+    clean = check(pool)
+    assert torch.isfinite(clean.share).float().mean() > 0.5  # most of the crop is seen
+    assert contested_patches(clean.contested.numpy(), g.spec.res, 1.0)[1] == []
+    hits = torch.isfinite(pixel_residuals(surf, pool, pool.T, 60.0, bake_colours(surf, pool, pool.T, 60.0)[0]))
+    car = torch.zeros(len(pool), dtype=torch.bool)
+    for v in (1, 2, 3, 4):
+        mine = torch.nonzero((pool.view == v) & pool.road & hits).squeeze(1)
+        car[mine[: len(mine) // 2]] = True  # the far half of each view's road, a blob of rows
+    painted = dataclasses.replace(pool, rgb=torch.where(car[:, None], torch.tensor([30, 40, 90], dtype=torch.uint8),
+                                                        pool.rgb))
+    got = check(painted)
+    keep, patches = contested_patches(got.contested.numpy(), g.spec.res, 1.0)
+    assert patches and patches[0]["area_m2"] >= 4.0 and int(got.views.max()) >= 2
+    # the patch lies where the vehicle's pixels land (the squares they reach)
+    under = torch.isfinite(check(painted.subset(car)).share).numpy()
+    assert under[keep].mean() > 0.95
+    # without a disagreeing second view nothing is contested: one view's glare is not a vehicle
+    one = check_texture(surf, painted, painted.T, 60.0, bake_colours(surf, painted, painted.T, 60.0)[0], None,
+                        cutoff=0.15, blob_px=1, min_share=0.1, min_views=int(got.views.max()) + 1, block=5)
+    assert not bool(one.contested.any())

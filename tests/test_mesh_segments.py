@@ -102,8 +102,9 @@ def _tile(xy: np.ndarray, offset: float, res: float = 0.1, crop: float = 3.0) ->
     h = torch.from_numpy((0.01 * X + offset).astype(np.float32))
     rgb = torch.full((g.ny, g.nx, 3), 0.5)
     sem = torch.zeros((g.ny, g.nx, 2))
+    contested = torch.from_numpy((X > 10) & (X < 12) & grid.valid)  # a vehicle in the texture, 2 m of road
     return RoadMesh(HeightField(g.x0, g.y0, g.res, h, torch.from_numpy(grid.valid)), rgb, sem, [0, 1], True,
-                    torch.from_numpy(grid.valid.copy()), None)
+                    torch.from_numpy(grid.valid.copy()), None, contested)
 
 
 def _blend(offsets: tuple[float, float]) -> tuple[RoadMesh, dict, GridSpec]:
@@ -135,6 +136,8 @@ def test_blend_is_continuous_across_the_seam_and_measures_the_step():
     # the 2 cm are shared out over the 20 m ramp: no step larger than 0.02 * 0.1 / 20 between cells
     assert np.abs(np.diff(row[(x > 1) & (x < 119)])).max() < 2e-4 + 1e-6
     assert mesh.observed.numpy()[j, (x > 1) & (x < 119)].all()
+    c = mesh.contested.numpy()[j]  # the stitched texture says where a tile's texture may hold a vehicle
+    assert c[(x > 10.05) & (x < 11.95)].all() and not c[(x < 9.95) | (x > 12.05)].any()
 
 
 def test_overlap_with_a_segment_not_before_it_on_the_path_is_no_seam():

@@ -127,6 +127,8 @@ def test_reconstruct_outputs_and_resume(scene, tmp_path):
     # load_mesh round trip and rendering a held-out view from it
     m2 = load_mesh(out)
     assert torch.allclose(m2.surface.heights, s.heights) and torch.allclose(m2.rgb, mesh.rgb)
+    assert torch.equal(m2.contested, mesh.contested) and "texture_check" in mj  # the texture check, kept
+    assert np.array_equal(np.load(out / "bev_contested.npy"), mesh.contested.numpy() & s.valid.numpy())
     assert m2.class_ids == [c.id for c in scene.classes]
     v = scene.frames[1].views["CAM0"]
     r = render_view(m2, scene.cameras["CAM0"], v.T_world_cam, scale=0.5)

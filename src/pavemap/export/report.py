@@ -343,7 +343,7 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
 <body>
 <header><h1>{_esc(title)}</h1><div class="sub">{_esc(sub)}</div></header>
 <main>
-{_geometry_banner(metrics)}<div class="first">{_worklist(props, det, geo_origin is not None)}
+{_geometry_banner(metrics)}{_texture_banner(metrics)}<div class="first">{_worklist(props, det, geo_origin is not None)}
 <div class="side">{map_html}{segment_strip(segments)}</div></div>
 <section id="defects-section"><h2>All measures (<span id="shown-count">{len(props)}</span> shown of
 {len(props)}; most urgent first — click a header to sort)</h2>
@@ -375,6 +375,23 @@ def _geometry_banner(metrics: dict | None) -> str:
     items = "".join(f"<li>{_esc(w)}</li>" for w in warns)
     return (f'<div id="geometry-warning" role="alert" style="border:2px solid {colour};background:#fff4f2;'
             f'padding:8px 12px;margin:0 0 12px"><b style="color:{colour}">{head}</b><ul>{items}</ul></div>')
+
+
+def _texture_banner(metrics: dict | None) -> str:
+    """Where the BEV texture may hold vehicles (stage 1's texture check, pavemap.mesh.texture_check; issue 13);
+    empty when nothing is contested."""
+    tc = ((metrics or {}).get("mesh") or {}).get("texture_check") or (metrics or {}).get("texture_check") or {}
+    if not tc.get("contested_m2"):
+        return ""
+    where = "".join(f"<li>{p['area_m2']:.1f} m² at x {p['x_m']:.1f}, y {p['y_m']:.1f} m (local metres)</li>"
+                    for p in tc.get("patches", [])[:5])
+    more = tc.get("patch_count", 0) - min(5, len(tc.get("patches", [])))
+    return ('<div id="texture-warning" role="note" style="border:2px solid #8a6d00;background:#fffbe6;padding:8px 12px;'
+            f'margin:0 0 12px"><b style="color:#8a6d00">BEV texture: may hold vehicles</b> over '
+            f'{tc["contested_m2"]:.1f} m² in {tc.get("patch_count", 0)} patch(es), where some views disagree with '
+            f'it (bev_contested.npy)<ul>{where}{f"<li>… {more} more</li>" if more > 0 else ""}</ul>'
+            'Detections come from the frames, not the texture: the map of defects is not affected. A vehicle that '
+            'covered the road in every view that saw it cannot be told from the road by this check.</div>')
 
 
 def write_report(out_dir: str | os.PathLike, instances: list[DefectInstance], **kwargs) -> Path:

@@ -152,6 +152,19 @@ class MeshConfig:
     # and only where they form a blob this many pixels (at render_scale) from its centre to its edge: paint edges
     # and texture a centimetre off are thin lines, a vehicle is a blob (bench/moving_bench.py). 0: every pixel.
     moving_blob_px: int = 2
+    # After the final bake, mark the vertices whose texture some views disagree with (pavemap.mesh.texture_check):
+    # where a vehicle covered the road in most views it *is* the texture, and the report says where that may be.
+    # A pixel disagrees beyond ``texture_cutoff`` (RGB distance) in a blob ``texture_blob_px`` from its centre to
+    # its edge; a square of ``texture_block_m`` is contested where that is at least ``texture_min_share`` of its
+    # pixels from at least ``texture_min_views`` views, and reported in patches of ``texture_min_patch_m2``
+    # (bench/moving_bench.py: a painted overtaking vehicle against the clean drive).
+    texture_check: bool = True
+    texture_cutoff: float = 0.15
+    texture_blob_px: int = 1
+    texture_min_share: float = 0.1
+    texture_min_views: int = 2
+    texture_block_m: float = 0.5  # a vertex sees a handful of pixels at render scale; a vehicle, square metres
+    texture_min_patch_m2: float = 1.0
     bake_final: bool = True
     # Jacobi steps from the weighted mean towards the least-squares colours in the final bake (bake_colours):
     # the mean blurs, the exact solution overfits single pixels.
@@ -212,7 +225,10 @@ class MeshConfig:
                      "pose_align_rounds", "exposure_rounds", "seed", "init_fine_cell_m", "check_holdout_every",
                      "view_range_m", "segment_m", "segment_overlap_m", "segment_revisit_m", "segment_revisit_spacing_m",
                      "segment_min_step_m",
-                     "moving_cutoff", "moving_blob_px", "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height",
+                     "moving_cutoff", "moving_blob_px", "texture_cutoff", "texture_min_share", "texture_min_views",
+                     "texture_min_patch_m2", "texture_block_m",
+                     "texture_blob_px",
+                     "init_along_fill_m", "lr_rgb", "lr_sem", "lr_height",
                      "lr_pose", "lr_pose_rot",
                      "w_rgb", "w_sem", "w_depth", "w_smooth"):
             _require(self, name, lambda v: v >= 0, "must be >= 0")

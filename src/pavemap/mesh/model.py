@@ -216,7 +216,9 @@ class RoadMesh:
     class_ids maps channel -> the sequence's class id; observed (ny, nx) bool the vertices whose height was
     measured (None: unknown, e.g. an old mesh file): elsewhere the heights are a guess; samples (N, 3) float32
     the height measurements themselves (triangulated ground points, a subsample of the depth pixels), or
-    None: finer than the surface, they measure what it smooths (a pothole's floor)."""
+    None: finer than the surface, they measure what it smooths (a pothole's floor); contested (ny, nx) bool
+    the vertices whose texture some views disagree with (a vehicle may be in it:
+    :mod:`pavemap.mesh.texture_check`), or None: not checked."""
 
     surface: HeightField
     rgb: torch.Tensor
@@ -225,6 +227,7 @@ class RoadMesh:
     has_semantics: bool = True
     observed: torch.Tensor | None = None
     samples: np.ndarray | None = None
+    contested: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         shape = tuple(self.surface.valid.shape)

@@ -27,7 +27,9 @@ MESH_FILE = "mesh.npz"
 def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.ndarray]:
     """Grid-order rasters: rgb (ny, nx, 3) uint8, semantic (ny, nx) int16 class id (-1 none),
     semantic_rgb (ny, nx, 3) uint8, height (ny, nx) float32 (NaN off the crop), valid (ny, nx) bool,
-    observed (ny, nx) bool (a training pixel or ground point reaches the vertex; the crop when unknown)."""
+    observed (ny, nx) bool (a training pixel or ground point reaches the vertex; the crop when unknown),
+    contested (ny, nx) bool (some views disagree with the texture there: it may hold a vehicle; all False when
+    the mesh was not checked)."""
     valid = mesh.surface.valid.cpu().numpy()
     vid = mesh.vertex_ids.cpu().numpy()
     rgb = np.zeros((valid.size, 3), np.uint8)
@@ -42,8 +44,10 @@ def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.nd
     h = mesh.surface.heights.detach().cpu().numpy().astype(np.float32).copy()
     h[~valid] = np.nan
     observed = valid if mesh.observed is None else mesh.observed.cpu().numpy().astype(bool) & valid
+    contested = (np.zeros_like(valid) if mesh.contested is None
+                 else mesh.contested.cpu().numpy().astype(bool) & valid)
     return {"rgb": rgb, "semantic": labels, "semantic_rgb": sem_rgb, "height": h, "valid": valid,
-            "observed": observed}
+            "observed": observed, "contested": contested}
 
 
 def _png_bytes(a: np.ndarray) -> bytes:
@@ -125,6 +129,7 @@ def save_mesh(out: Path, mesh: RoadMesh) -> None:
             sem_logits=mesh.sem_logits.cpu().numpy().astype(np.float32),
             class_ids=np.asarray(mesh.class_ids, dtype=np.int64), has_semantics=mesh.has_semantics,
             **({} if mesh.observed is None else {"observed": mesh.observed.cpu().numpy().astype(bool)}),
+            **({} if mesh.contested is None else {"contested": mesh.contested.cpu().numpy().astype(bool)}),
             **({} if mesh.samples is None else {"samples": np.asarray(mesh.samples, np.float32).reshape(-1, 3)}))
 
 
@@ -140,9 +145,10 @@ def load_mesh(out_dir: Path) -> RoadMesh:
                            torch.from_numpy(z["heights"].astype(np.float32)), torch.from_numpy(valid))
         observed = torch.from_numpy(z["observed"].astype(bool)) if "observed" in z.files else None
         samples = z["samples"].astype(np.float32).reshape(-1, 3) if "samples" in z.files else None
+        contested = torch.from_numpy(z["contested"].astype(bool)) if "contested" in z.files else None
         return RoadMesh(surf, torch.from_numpy(z["rgb"].astype(np.float32)),
                         torch.from_numpy(z["sem_logits"].astype(np.float32)), [int(c) for c in z["class_ids"]],
-                        bool(z["has_semantics"]), observed, samples)
+                        bool(z["has_semantics"]), observed, samples, contested)
     except (KeyError, ValueError, OSError) as e:
         raise PavemapError(f"{f}: not a pavemap mesh file ({e})") from None
 
@@ -160,7 +166,7 @@ def write_outputs(out: Path, mesh: RoadMesh, metrics: dict, classes: list[Semant
                       ("bev_height.png", _height_png(r["height"]))):
         atomic_write_bytes(out / name, _png_bytes(np.ascontiguousarray(img[::-1])))
         paths[name] = out / name
-    for name in ("rgb", "semantic", "height", "valid", "observed"):
+    for name in ("rgb", "semantic", "height", "valid", "observed", "contested"):
         _save_npy(out / f"bev_{name}.npy", r[name])
         paths[f"bev_{name}.npy"] = out / f"bev_{name}.npy"
     atomic_write_json(out / "grid.json", mesh.grid.to_dict())

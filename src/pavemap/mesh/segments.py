@@ -33,6 +33,7 @@ from pavemap.mesh.evaluate import truth_metrics
 from pavemap.mesh.model import RoadMesh
 from pavemap.mesh.setup import trajectory_grid
 from pavemap.mesh.stitch import Stitcher, core_ramp, own_path, segment_weights
+from pavemap.mesh.texture_check import texture_summary
 from pavemap.mesh.tiles import SEGMENTS_DIR, TileJob, tile_stamp
 from pavemap.types import Sequence
 
@@ -398,6 +399,8 @@ def _drive_metrics(seq: Sequence, mesh: RoadMesh, rows: list[dict], notes: list[
         "geometry": geometry, "warnings": notes, "history": [], "config": cfg.to_dict(),
         "seconds": seconds, "frames": frames, "seconds_per_frame": seconds / max(1, frames),
     }
+    if mesh.contested is not None:  # the segments' contested patches, stitched (each filtered by its segment)
+        metrics["texture_check"] = texture_summary(mesh.contested.numpy(), s.grid, 0.0, int(valid.sum()))[1]
     if has_truth_height(seq.root):
         metrics.update(truth_metrics(mesh, seq.root, mesh.observed))
     return metrics

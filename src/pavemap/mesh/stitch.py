@@ -104,6 +104,7 @@ class Stitcher:
         self.channels = channels
         self.sums = {"w": np.zeros(0, np.float32), "h": np.zeros(0, np.float64), "rgb": np.zeros((0, 3), np.float32),
                      "sem": np.zeros((0, channels), np.float32), "observed": np.zeros(0, bool),
+                     "contested": np.zeros(0, bool),
                      "owner": np.zeros(0, np.int32)}  # the last tile (number, from 1) that owned the cell
 
     def _rows(self, g: GridSpec, tile_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,6 +165,8 @@ class Stitcher:
         sums["rgb"][k] += w[:, None] * tile.rgb.cpu().numpy()[rows]
         sums["sem"][k] += w[:, None] * tile.sem_logits.cpu().numpy()[rows]
         sums["observed"][k] |= observed & (w > OWNED)
+        if tile.contested is not None:
+            sums["contested"][k] |= tile.contested.cpu().numpy().reshape(-1)[ids].astype(bool) & (w > OWNED)
         sums["owner"][k] = np.where(w > OWNED, number, sums["owner"][k])
         if tile.samples is not None and len(tile.samples):
             self.samples.append(_owned_samples(tile.samples, s.grid, weight))
@@ -188,13 +191,16 @@ class Stitcher:
         valid[cells] = True
         observed = np.zeros(n, bool)
         observed[cells] = sums.pop("observed")[k]
+        contested = np.zeros(n, bool)
+        contested[cells] = sums.pop("contested")[k]
         rgb = sums.pop("rgb")[k] * inv[:, None]
         sem = sums.pop("sem")[k] * inv[:, None]
         surf = HeightField(g.x0, g.y0, g.res, torch.from_numpy(h.reshape(g.shape)),
                            torch.from_numpy(valid.reshape(g.shape)))
         samples = np.concatenate(self.samples).astype(np.float32) if self.samples else None
         return RoadMesh(surf, torch.from_numpy(rgb), torch.from_numpy(sem), list(class_ids), has_semantics,
-                        torch.from_numpy(observed.reshape(g.shape)), samples)
+                        torch.from_numpy(observed.reshape(g.shape)), samples,
+                        torch.from_numpy(contested.reshape(g.shape)))
 
 
 def _owned_samples(samples: np.ndarray, g: GridSpec, weight: np.ndarray) -> np.ndarray:

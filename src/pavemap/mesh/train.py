@@ -28,6 +28,7 @@ from pavemap.geometry import surface_bounds
 from pavemap.mesh.bake import bake_into
 from pavemap.mesh.checkpoint import CHECKPOINT, Resumed, resume, save_checkpoint
 from pavemap.mesh.config import MeshConfig
+from pavemap.mesh.data import PixelPool
 from pavemap.mesh.evaluate import evaluate_pool, psnr, stage_metrics
 from pavemap.mesh.geometry import (
     Geometry,
@@ -90,6 +91,7 @@ class _Run:
     done: Resumed = dataclasses.field(default_factory=lambda: Resumed(0, [], 0.0))
     align_log: list[dict] = dataclasses.field(default_factory=list)
     moving_share: float = 0.0  # training pixels left out as moving objects (_drop_moving)
+    all_pixels: PixelPool | None = None  # the pool before _drop_moving (what the texture check compares)
     samples: np.ndarray | None = None  # (N, 3) the height measurements (_samples)
     exposure: torch.Tensor | None = None  # (V, 2) the training views' gain and offset (final bake)
     init_hits: list | None = None  # the visible-pixel march on the initial surface, for the initial bake
@@ -181,7 +183,7 @@ def _drop_moving(fit: Fit, run: _Run) -> None:
     dropped = int((~keep).sum())
     run.moving_share = dropped / max(1, len(fit.pool))
     if dropped:
-        fit.pool = fit.pool.subset(keep)
+        run.all_pixels, fit.pool = fit.pool, fit.pool.subset(keep)
         if run.moving_share > 0.01:
             run.warn(f"{100 * run.moving_share:.1f} % of the training pixels disagree with the road the other views "
                      "see (moving vehicles, or a surface still far off) and are left out of the texture and the "
@@ -206,6 +208,12 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     run.samples = _samples(fit, run)
     mesh.samples = run.samples
     mesh.observed = _observed(fit, run, seen)
+    if cfg.texture_check and cfg.bake_final:
+        from pavemap.mesh.texture_check import check_model_texture
+
+        pixels = fit.pool if run.all_pixels is None else run.all_pixels
+        mesh.contested, metrics["texture_check"] = check_model_texture(
+            fit.model, mesh, data.classes, pixels, _posed(fit), run.fill, cfg, run.exposure, run.warn)
     s = mesh.surface
     metrics["geometry"] = self_check(run.geo, data.grid.spec, s.heights.detach().cpu().numpy(),
                                      s.valid.cpu().numpy(), mesh.observed.cpu().numpy(), cfg, run.warn)
