@@ -214,6 +214,25 @@ def test_initial_bake_reusing_the_visible_pixel_march_changes_nothing(seq, monke
     assert torch.equal(mesh_reused.surface.heights, mesh_again.surface.heights)
 
 
+def test_texture_check_takes_the_final_bake_march_and_changes_nothing(seq, monkeypatch):
+    """The texture check reads the final bake's march (no march of its own) and leaves the mesh as it is, to
+    the bit; with the moving-pixel rejection on it checks every pixel, the dropped ones too (its own march)."""
+    import pavemap.mesh.texture_check as texture_check
+
+    cfg = dict(resolution=0.1, crop_m=4.0, epochs=0, render_scale=1.0, eval_scale=1.0, holdout_every=3,
+               device="cpu", threads=1, resume=False)
+    own = []
+    real_march = texture_check.march_pool
+    monkeypatch.setattr(texture_check, "march_pool", lambda *a, **k: own.append(1) or real_march(*a, **k))
+    checked, m = reconstruct(seq, None, MeshConfig(**cfg), progress=False)
+    plain, m_plain = reconstruct(seq, None, MeshConfig(**cfg, texture_check=False), progress=False)
+    assert own == [] and "texture_check" in m and "texture_check" not in m_plain
+    assert checked.contested is not None and plain.contested is None
+    assert torch.equal(checked.rgb, plain.rgb) and torch.equal(checked.surface.heights, plain.surface.heights)
+    reconstruct(seq, None, MeshConfig(**cfg, moving_cutoff=0.01, moving_blob_px=0), progress=False)
+    assert own == [1]
+
+
 def test_semantic_bake_takes_each_vertex_majority_of_weighted_votes():
     """Closed-form logits: the barycentric-weighted class votes of the labelled pixels; unlabelled pixels
     (channel -1) do not vote and a vertex no labelled pixel reaches is not reported as labelled."""

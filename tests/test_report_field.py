@@ -283,3 +283,16 @@ def test_segment_strip_along_chainage():
     assert [int(v) for v in re.findall(r'text-anchor="middle">(\d+)</text>', strip)] == [92, 35, 61]
     assert "segment 2: 100–200 m, PCI-like index 35 (poor), 1 defects" in strip
     assert "<svg id=\"segment-strip\"" not in build_report_html([])  # no segments: no strip
+
+
+def test_report_says_where_the_texture_may_hold_a_vehicle():
+    """Stage 1's texture check (mesh/metrics.json -> texture_check) shows as a banner with its patches; none
+    when nothing is contested."""
+    tc = {"contested_m2": 53.8, "patch_count": 7, "few_views_m2": 60.0,
+          "patches": [{"area_m2": 40.0 - k, "x_m": 44.1 + k, "y_m": 1.3} for k in range(7)]}
+    page = build_report_html([], metrics={"mesh": {"texture_check": tc}})
+    banner = page[page.index('id="texture-warning"'):page.index("</div>", page.index('id="texture-warning"'))]
+    assert "53.8 m²" in banner and "40.0 m² at x 44.1, y 1.3 m" in banner and "… 2 more" in banner
+    assert banner.count("<li>") == 6  # five patches and the rest counted
+    clean = build_report_html([], metrics={"mesh": {"texture_check": {**tc, "contested_m2": 0.0, "patches": []}}})
+    assert 'id="texture-warning"' not in clean and 'id="texture-warning"' not in build_report_html([])

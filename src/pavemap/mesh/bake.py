@@ -55,19 +55,20 @@ def pool_hits(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: 
 
 class Hits(NamedTuple):
     """The pool pixels that hit the surface, cached for repeated passes: flat vertex ids (M, 3), barycentric
-    weights (M, 3) float32, colours (M, 3) uint8, their views (M,) long and semantic channels (M,) long
-    (-1 unknown) (one batch of a march)."""
+    weights (M, 3) float32, colours (M, 3) uint8, their views (M,) long, semantic channels (M,) long
+    (-1 unknown) and rows (M,) long in the pool, or None where not known (one batch of a march)."""
 
     vid: torch.Tensor
     w: torch.Tensor
     c8: torch.Tensor
     view: torch.Tensor
     channel: torch.Tensor
+    rows: torch.Tensor | None = None
 
 
 def batch_hits(pool: PixelPool, sl: slice, rows: torch.Tensor, vid: torch.Tensor, w: torch.Tensor) -> Hits:
     """One :func:`pool_hits` batch as the bake keeps it."""
-    return Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows], pool.channel[sl][rows])
+    return Hits(vid, w.float(), pool.rgb[sl][rows], pool.view[sl][rows], pool.channel[sl][rows], sl.start + rows)
 
 
 def march_pool(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float,
@@ -228,7 +229,7 @@ def _opened(flag: torch.Tensor, pool: PixelPool, radius: int) -> torch.Tensor:
     H, W = int(row.max()) + 1, int(col.max()) + 1
     k = 2 * radius + 1
     out = torch.zeros_like(flag)
-    chunk = max(1, (64 << 20) // (4 * H * W))  # views a 64 MiB canvas holds: a long drive has thousands
+    chunk = max(1, (16 << 20) // (4 * H * W))  # views a 16 MiB canvas holds (four live at once): a drive has thousands
     for v0 in range(0, len(pool.keys), chunk):
         sel = (pool.view >= v0) & (pool.view < v0 + chunk)
         img = torch.ones(chunk, 1, H, W, device=flag.device)

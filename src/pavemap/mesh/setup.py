@@ -186,4 +186,7 @@ def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist:
     pool = pool.subset(keep)
     if len(pool) == 0:
         raise PavemapError(f"sequence {seq_name!r}: no training view sees the road area around the trajectory")
+    if hits:  # their rows in the pool without the misses
+        at = torch.cumsum(keep, 0) - 1
+        hits = [h._replace(rows=at[h.rows]) for h in hits]
     return pool, hits

@@ -24,7 +24,7 @@ import torch
 
 from pavemap.geometry import GridSpec, HeightField
 from pavemap.mesh import exposure as exposure_model
-from pavemap.mesh.bake import _opened, pool_hits
+from pavemap.mesh.bake import Hits, _opened, march_pool
 from pavemap.mesh.data import PixelPool
 from pavemap.mesh.model import RoadMesh
 from pavemap.types import SemanticClass
@@ -45,24 +45,24 @@ class TextureCheck:
 @torch.no_grad()
 def check_texture(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, rgb: torch.Tensor,
                   exposure: torch.Tensor | None, cutoff: float, blob_px: int, min_share: float, min_views: int,
-                  block: int = 1, batch: int = 262144) -> TextureCheck:
+                  block: int = 1, hits: list[Hits] | None = None) -> TextureCheck:
     """The texture's disagreement with the pixels it was baked from, per square of ``block`` × ``block`` cells
     (a vertex sees a handful of pixels at render scale; a vehicle's imprint is square metres).
 
     surface: the final surface (dense heights (ny, nx), crop); pool: the training pixels, T (V, 4, 4) their
     posed views; rgb (ny, nx, 3) float the final texture; exposure (V, 2) float64 or None (the views'
-    gains and offsets of the final bake). Each pixel counts once, at its triangle's nearest vertex."""
+    gains and offsets of the final bake); hits: the pool's march on this surface when one was made already
+    (:func:`pavemap.mesh.bake.march_pool`). Each pixel counts once, at its triangle's nearest vertex."""
     ny, nx = surface.heights.shape
     bx, by = -(-nx // block), -(-ny // block)
     flat = rgb.reshape(-1, 3).double()
     resid = torch.full((len(pool),), float("nan"), dtype=torch.float32, device=rgb.device)
     at = torch.full((len(pool),), -1, dtype=torch.long, device=rgb.device)  # each hit pixel's block
-    for sl, rows, vid, w in pool_hits(surface, pool, T, max_dist, batch):
-        idx = sl.start + rows
-        obs = exposure_model.compensate(pool.rgb[idx].double() / 255.0, exposure, pool.view[idx])
-        resid[idx] = torch.linalg.norm(obs - (w[..., None] * flat[vid]).sum(1), dim=1).float()
-        near = vid.gather(1, w.argmax(1, keepdim=True)).squeeze(1)
-        at[idx] = (near // nx // block) * bx + (near % nx) // block
+    for h in march_pool(surface, pool, T, max_dist) if hits is None else hits:
+        obs = exposure_model.compensate(h.c8.double() / 255.0, exposure, h.view)
+        resid[h.rows] = torch.linalg.norm(obs - (h.w.double()[..., None] * flat[h.vid]).sum(1), dim=1).float()
+        near = h.vid.gather(1, h.w.argmax(1, keepdim=True)).squeeze(1)
+        at[h.rows] = (near // nx // block) * bx + (near % nx) // block
     off = resid > cutoff  # NaN (a miss) compares False
     off = _opened(off, pool, blob_px) if blob_px > 0 and bool(off.any()) else off
     hit = at >= 0
@@ -125,7 +125,8 @@ def texture_summary(contested: np.ndarray, g: GridSpec, min_patch_m2: float, see
 
 
 def check_model_texture(model, mesh: RoadMesh, classes: list[SemanticClass], pool: PixelPool, T: torch.Tensor,  # noqa: ANN001
-                        fill: float, cfg, exposure: torch.Tensor | None, warn) -> tuple[torch.Tensor, dict]:  # noqa: ANN001
+                        fill: float, cfg, exposure: torch.Tensor | None, warn,  # noqa: ANN001
+                        hits: list[Hits] | None = None) -> tuple[torch.Tensor, dict]:
     """:func:`check_texture` of a stage-1 model's final texture (RoadMeshModel, its RoadMesh, MeshConfig): the
     contested vertices (ny, nx) bool in patches of at least ``cfg.texture_min_patch_m2`` and the metrics;
     ``warn`` (a str callable) is told where the texture may hold vehicles. Only the road and what the mesh
@@ -135,7 +136,7 @@ def check_model_texture(model, mesh: RoadMesh, classes: list[SemanticClass], poo
     rgb = model.dense(model.rgb.detach().float(), fill=0.0)
     g = model.grid.spec
     tc = check_texture(field, pool, T, cfg.max_dist, rgb, exposure, cfg.texture_cutoff, cfg.texture_blob_px,
-                       cfg.texture_min_share, cfg.texture_min_views, max(1, round(cfg.texture_block_m / g.res)))
+                       cfg.texture_min_share, cfg.texture_min_views, max(1, round(cfg.texture_block_m / g.res)), hits)
     where = mesh.surface.valid.cpu().numpy() & torch.isfinite(tc.share).cpu().numpy()
     if mesh.has_semantics and mesh.class_ids:
         where &= np.isin(mesh.labels().cpu().numpy(), [c.id for c in classes if c.road or c.movable])

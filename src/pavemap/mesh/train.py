@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 from pavemap.device import resolve_device
 from pavemap.errors import PavemapError
 from pavemap.geometry import surface_bounds
-from pavemap.mesh.bake import bake_into
+from pavemap.mesh.bake import bake_into, march_pool
 from pavemap.mesh.checkpoint import CHECKPOINT, Resumed, resume, save_checkpoint
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool
@@ -196,24 +196,13 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     cfg, data = fit.cfg, run.data
     if cfg.anchor_to_points and cfg.epochs > 0:  # without training the surface is the points' fit already
         _anchor(fit, run)
-    seen = None
-    if cfg.bake_final:
-        seen, run.exposure = bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist,
-                                       cfg.bake_fill_sigma, sharpen_iters=cfg.bake_sharpen_iters,
-                                       exposure_rounds=cfg.exposure_rounds)
-    mesh = to_road_mesh(fit.model, data.class_ids, data.use_sem)
+    seen, mesh, texture = _final_bake(fit, run)
     metrics = {**stage_metrics(fit, data, mesh, run.fill, _eval_delta(fit, data), seen, seq.root, run.exposure),
                "device": str(run.device), "epochs": cfg.epochs, **schedule, "camera_height_init": run.cam_h,
-               "moving_pixel_share": round(run.moving_share, 5)}
+               "moving_pixel_share": round(run.moving_share, 5), **texture}
     run.samples = _samples(fit, run)
     mesh.samples = run.samples
     mesh.observed = _observed(fit, run, seen)
-    if cfg.texture_check and cfg.bake_final:
-        from pavemap.mesh.texture_check import check_model_texture
-
-        pixels = fit.pool if run.all_pixels is None else run.all_pixels
-        mesh.contested, metrics["texture_check"] = check_model_texture(
-            fit.model, mesh, data.classes, pixels, _posed(fit), run.fill, cfg, run.exposure, run.warn)
     s = mesh.surface
     metrics["geometry"] = self_check(run.geo, data.grid.spec, s.heights.detach().cpu().numpy(),
                                      s.valid.cpu().numpy(), mesh.observed.cpu().numpy(), cfg, run.warn)
@@ -224,6 +213,30 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     if not torch.isfinite(mesh.surface.heights[mesh.surface.valid]).all():
         raise PavemapError("reconstruction produced non-finite heights")
     return mesh, metrics
+
+
+def _final_bake(fit: Fit, run: _Run) -> tuple[torch.Tensor | None, RoadMesh, dict]:
+    """The final bake (``seen`` (Nv,) bool or None without it), the mesh, and the texture check's metrics
+    (:mod:`pavemap.mesh.texture_check`; ``{"texture_check": ...}`` or empty) on one march of the pixels, freed
+    before the held-out evaluation."""
+    cfg, data = fit.cfg, run.data
+    seen, hits, texture = None, None, {}
+    check = cfg.texture_check and cfg.bake_final
+    if cfg.bake_final:
+        if check and run.all_pixels is None:  # the check compares the pixels the bake used: one march for both
+            m = fit.model
+            hits = march_pool(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), cfg.max_dist)
+        seen, run.exposure = bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist,
+                                       cfg.bake_fill_sigma, sharpen_iters=cfg.bake_sharpen_iters,
+                                       exposure_rounds=cfg.exposure_rounds, hits=hits)
+    mesh = to_road_mesh(fit.model, data.class_ids, data.use_sem)
+    if check:
+        from pavemap.mesh.texture_check import check_model_texture
+
+        pixels = fit.pool if run.all_pixels is None else run.all_pixels  # those _drop_moving left out too
+        mesh.contested, texture["texture_check"] = check_model_texture(
+            fit.model, mesh, data.classes, pixels, _posed(fit), run.fill, cfg, run.exposure, run.warn, hits)
+    return seen, mesh, texture
 
 
 @torch.no_grad()
