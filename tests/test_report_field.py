@@ -294,5 +294,9 @@ def test_report_says_where_the_texture_may_hold_a_vehicle():
     banner = page[page.index('id="texture-warning"'):page.index("</div>", page.index('id="texture-warning"'))]
     assert "53.8 m²" in banner and "40.0 m² at x 44.1, y 1.3 m" in banner and "… 2 more" in banner
     assert banner.count("<li>") == 6  # five patches and the rest counted
+    layer = page[page.index('id="layer-contested"'):page.index("</g>", page.index('id="layer-contested"'))]
+    assert layer.count("<circle") == 7 and 'cx="44.10" cy="-1.30"' in layer  # on the map, y up
+    assert 'data-layer="layer-contested"' in page  # with its checkbox
     clean = build_report_html([], metrics={"mesh": {"texture_check": {**tc, "contested_m2": 0.0, "patches": []}}})
     assert 'id="texture-warning"' not in clean and 'id="texture-warning"' not in build_report_html([])
+    assert 'id="layer-contested"' not in clean

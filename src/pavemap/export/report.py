@@ -226,7 +226,8 @@ def _worklist(props: list[dict], det: dict, geo: bool) -> str:
 
 def _map(props: list[dict], instances: list[DefectInstance], bev_rgb: np.ndarray | None,
          bev_semantic: np.ndarray | None, mesh_grid: GridSpec | None, prob_map: np.ndarray | None,
-         grid: GridSpec | None, trajectory: np.ndarray | None, geo_origin: GeoOrigin | None) -> tuple[str, list]:
+         grid: GridSpec | None, trajectory: np.ndarray | None, geo_origin: GeoOrigin | None,
+         metrics: dict | None = None) -> tuple[str, list]:
     """The map section (SVG layers, defects coloured by urgency, toolbars) and its home view box."""
     layers, extents = [], []
     if bev_rgb is not None and mesh_grid is not None:
@@ -239,6 +240,7 @@ def _map(props: list[dict], instances: list[DefectInstance], bev_rgb: np.ndarray
     if prob_map is not None and grid is not None:
         layers.append(_image_el("layer-prob", _data_uri(_prob_rgba(prob_map), "PNG"), grid, hidden=True))
         extents.append(grid_extent(grid))
+    layers.append(_contested_el(metrics))
     traj_el = ""
     if trajectory is not None and len(trajectory) > 1:
         t = np.asarray(trajectory, dtype=np.float64)
@@ -272,6 +274,7 @@ def _map(props: list[dict], instances: list[DefectInstance], bev_rgb: np.ndarray
     for el_id, label, on in (("layer-rgb", "BEV RGB", bev_rgb is not None),
                              ("layer-sem", "semantics", bev_rgb is None and bev_semantic is not None),
                              ("layer-prob", "probability", False), ("layer-traj", "trajectory", True),
+                             ("layer-contested", "texture may hold vehicles", True),
                              ("defect-shapes", "polygons", True), ("defect-markers", "markers", True)):
         if el_id in svg:
             boxes.append(f'<label><input type="checkbox" data-layer="{el_id}"{" checked" if on else ""}> {label}'
@@ -315,7 +318,8 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
         g = inst.polygon
         p["bbox"] = [round(float(v), 3) for v in g.bounds] if g is not None and not g.is_empty else None
     det = _detection_summary(detections)
-    map_html, view = _map(props, instances, bev_rgb, bev_semantic, mesh_grid, prob_map, grid, trajectory, geo_origin)
+    map_html, view = _map(props, instances, bev_rgb, bev_semantic, mesh_grid, prob_map, grid, trajectory, geo_origin,
+                          metrics)
     head, rows = _table_rows(props, geo_origin is not None)
     figs = "".join(f'<figure><img alt="{_esc(name)}" src="{_file_uri(path)}"><figcaption>{_esc(name)}'
                    "</figcaption></figure>" for name, path in (figures or {}).items() if Path(path).is_file())
@@ -377,10 +381,25 @@ def _geometry_banner(metrics: dict | None) -> str:
             f'padding:8px 12px;margin:0 0 12px"><b style="color:{colour}">{head}</b><ul>{items}</ul></div>')
 
 
+def _texture_check(metrics: dict | None) -> dict:
+    """Stage 1's texture check from the run's metrics (``mesh`` → ``texture_check``) or a mesh's own; {} when none."""
+    return ((metrics or {}).get("mesh") or {}).get("texture_check") or (metrics or {}).get("texture_check") or {}
+
+
+def _contested_el(metrics: dict | None) -> str:
+    """The texture check's patches on the map: a dashed circle of each patch's area around its centre (the
+    patches, not their outlines, are in metrics.json; bev_contested.npy has the cells); empty when none."""
+    circles = "".join(f'<circle cx="{p["x_m"]:.2f}" cy="{-p["y_m"]:.2f}" '
+                      f'r="{max(0.5, (p["area_m2"] / np.pi) ** 0.5):.2f}"><title>texture may hold a vehicle: '
+                      f'{p["area_m2"]:.1f} m²</title></circle>' for p in _texture_check(metrics).get("patches") or [])
+    return (f'<g id="layer-contested" fill="none" stroke="#e6a100" stroke-width="0.25" stroke-dasharray="0.6 0.4">'
+            f"{circles}</g>") if circles else ""
+
+
 def _texture_banner(metrics: dict | None) -> str:
     """Where the BEV texture may hold vehicles (stage 1's texture check, pavemap.mesh.texture_check; issue 13);
     empty when nothing is contested."""
-    tc = ((metrics or {}).get("mesh") or {}).get("texture_check") or (metrics or {}).get("texture_check") or {}
+    tc = _texture_check(metrics)
     if not tc.get("contested_m2"):
         return ""
     where = "".join(f"<li>{p['area_m2']:.1f} m² at x {p['x_m']:.1f}, y {p['y_m']:.1f} m (local metres)</li>"
@@ -389,7 +408,8 @@ def _texture_banner(metrics: dict | None) -> str:
     return ('<div id="texture-warning" role="note" style="border:2px solid #8a6d00;background:#fffbe6;padding:8px 12px;'
             f'margin:0 0 12px"><b style="color:#8a6d00">BEV texture: may hold vehicles</b> over '
             f'{tc["contested_m2"]:.1f} m² in {tc.get("patch_count", 0)} patch(es), where some views disagree with '
-            f'it (bev_contested.npy)<ul>{where}{f"<li>… {more} more</li>" if more > 0 else ""}</ul>'
+            f'it (bev_contested.npy; dashed circles on the map)<ul>{where}'
+            f'{f"<li>… {more} more</li>" if more > 0 else ""}</ul>'
             'Detections come from the frames, not the texture: the map of defects is not affected. A vehicle that '
             'covered the road in every view that saw it cannot be told from the road by this check.</div>')
 
