@@ -11,6 +11,9 @@ Both report ``road_steps``: each step's length from the road's image motion (``p
 sets the path's scale, beside the SfM's own; KITTI also the camera height the road's steps imply with the true
 poses (``road_steps_on_true_poses``).
 
+The clip also reports ``road_sideways``: per step, the sideways offset of the destination camera at which the
+road matches best (``pavemap.io.sfm_steps.road_sideways``), beside the SfM path's own sideways step.
+
 Both also report ``speed_check``: what the importers' speed check (``--fps``; KITTI 10 Hz, the clip's
 keyframes 2 Hz) says of the trajectory found: the largest change of speed per second, against its limit.
 
@@ -137,7 +140,30 @@ def nuscenes() -> dict:
             "steps_m": np.linalg.norm(np.diff(C, axis=0), axis=1).round(2).tolist(),
             "dense_scale": res.info.get("dense_scale"), "road_steps": res.info.get("road_steps"),
             "speed_check": speed_check(res, 2.0),
+            "road_sideways": sideways(ims, res, cam, 1.5, mask, lateral),
             "seconds": round(dt, 1)}
+
+
+def sideways(ims: list[Path], res, cam: Camera, h: float, mask, lateral: np.ndarray) -> dict:  # noqa: ANN001
+    """The road's check of the path's sideways motion (:func:`pavemap.io.sfm_steps.road_sideways`): per
+    moving step the sideways offset (m) at which the road matches best, and the SfM's own sideways step
+    (``lateral`` (R,) the registered path's offsets from its chord, m)."""
+    from pavemap.io.sfm_steps import road_sideways
+
+    reg = np.flatnonzero(res.registered)
+    k = res.info.get("K_refined") or {}
+    K = cam.K.copy()
+    if k:
+        K[0, 0], K[1, 1], K[0, 2], K[1, 2] = k["fx"], k["fy"], k["cx"], k["cy"]
+    rows = road_sideways([ims[i] for i in reg], res.T_world_cam[reg], Camera(cam.name, cam.width, cam.height, K),
+                         h, mask)
+    sfm_side = np.diff(lateral)
+    for r in rows:
+        r["sfm_sideways_m"] = round(float(sfm_side[r["step"]]), 3)
+    got = [r for r in rows if r["best_offset_m"] is not None]
+    return {"steps": rows, "compared": len(got),
+            "within_5cm": sum(abs(r["best_offset_m"]) <= 0.05 for r in got),
+            "max_abs_offset_m": max((abs(r["best_offset_m"]) for r in got), default=None)}
 
 
 def synthetic_steps() -> dict:

@@ -107,3 +107,25 @@ def test_sfm_warns_when_the_road_steps_and_the_ground_points_disagree(monkeypatc
         assert res.info["dense_scale"].get("disagrees", False) is warned
         assert np.allclose(res.T_world_cam[:, 0, 3], [0, 1, 2])  # the road's scale stays
         assert np.allclose(res.T_world_cam[:, 2, 3], 1.5)  # the road at z = 0 under the cameras
+
+
+def test_road_sideways_sees_a_path_that_drifts_sideways(tiny_seq):
+    """The road's check of a path's shape: on the true path every step's sideways offset is 0; a path whose
+    steps were swung 0.2 m to one side (an SfM drift the lengths do not show) gets -0.2 m from the road."""
+    from pavemap.io.sfm_steps import road_sideways
+
+    cam = next(iter(tiny_seq.cameras.values()))
+    views = [f.views[cam.name] for f in tiny_seq.frames]
+    T = np.stack([v.T_world_cam for v in views])
+    ims = [tiny_seq.root / v.image for v in views]
+    rows = road_sideways(ims, T, cam, 1.65)
+    got = np.array([r["best_offset_m"] if r["best_offset_m"] is not None else np.nan for r in rows])
+    assert np.isfinite(got).sum() >= len(rows) - 1 and np.nanmax(np.abs(got)) <= 0.05, got
+    d = np.diff(T[:, :3, 3], axis=0)
+    side = np.cross([0.0, 0.0, 1.0], d / np.linalg.norm(d, axis=1, keepdims=True))  # left of the travel
+    swung = T.copy()
+    swung[1:, :3, 3] = T[0, :3, 3] + np.cumsum(d + 0.2 * side, axis=0)  # each step 0.2 m to the left
+    rows = road_sideways(ims, swung, cam, 1.65)
+    got = np.array([r["best_offset_m"] if r["best_offset_m"] is not None else np.nan for r in rows])
+    assert np.isfinite(got).sum() >= len(rows) - 1 and np.nanmax(np.abs(got + 0.2)) <= 0.06, got
+    assert all(r["peak"] >= r["at_zero"] for r in rows if r["peak"] is not None)

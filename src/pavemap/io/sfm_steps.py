@@ -15,6 +15,7 @@ z forward), world z up, metres or SfM units (only directions and rotations are u
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -107,16 +108,14 @@ def _ncc_score(ref: np.ndarray, warped: np.ndarray, valid: np.ndarray, win: int)
     return float(np.mean(z[use])) if use.sum() > 200 else float("nan")
 
 
-def sweep_step(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: np.ndarray, R_dst: np.ndarray,
-               direction: np.ndarray, normal: np.ndarray, h: float, roi_dst: np.ndarray, ego: np.ndarray | None,
-               cfg: StepConfig) -> StepEstimate:
-    """Length (m) of the step src → dst at which the road warped from ``img_src`` best matches ``img_dst``.
+def road_scorer(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: np.ndarray, R_dst: np.ndarray,
+                normal: np.ndarray, h: float, roi_dst: np.ndarray, ego: np.ndarray | None, cfg: StepConfig):  # noqa: ANN201
+    """A function of the destination camera's centre (3,) (world) -> the windowed NCC (float) between
+    ``img_dst``'s road pixels ``roi_dst`` and ``img_src`` warped onto them by the road plane's homography.
 
     ``img_*`` (H, W) float32 at the matching scale with ``K`` scaled to match; ``T_src`` (4, 4) the source
-    camera-to-world pose, ``R_dst`` (3, 3) the destination's rotation, the destination camera sits at
-    ``T_src``'s centre + d · ``direction`` (3,) unit; the road is the plane with upward unit ``normal`` (3,)
-    ``h`` metres below the source camera. ``roi_dst`` (H, W) bool: road pixels of the destination view to
-    compare; ``ego`` (H, W) True = ego.
+    camera-to-world pose, ``R_dst`` (3, 3) the destination's rotation; the road is the plane with upward unit
+    ``normal`` (3,) ``h`` metres below the source camera; ``ego`` (H, W) True = ego.
     """
     import cv2
 
@@ -130,13 +129,12 @@ def sweep_step(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: n
     ref = img_dst[y0:y1, x0:x1]
     roi = roi_dst[y0:y1, x0:x1]
     src_ok = None if ego is None else (~ego).astype(np.float32)
-
     offset = float(normal @ T_src[:3, 3]) - h
     T_dst = np.eye(4)
     T_dst[:3, :3] = R_dst
 
-    def score(d: float) -> float:
-        T_dst[:3, 3] = T_src[:3, 3] + d * direction
+    def score(centre: np.ndarray) -> float:
+        T_dst[:3, 3] = centre
         Hm = plane_homography(K, T_src, K, T_dst, normal, offset)  # src -> dst
         q = np.linalg.solve(Hm, pix)  # dst pixels -> src pixels
         # no test of q's sign: Hm is normalised by Hm[2, 2], which changes sign with d; the road ahead of
@@ -152,6 +150,21 @@ def sweep_step(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: n
         if src_ok is not None:
             valid &= cv2.remap(src_ok, mx, my, cv2.INTER_NEAREST, borderValue=0) > 0.5
         return _ncc_score(ref, warped, valid, cfg.window)
+
+    return score
+
+
+def sweep_step(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: np.ndarray, R_dst: np.ndarray,
+               direction: np.ndarray, normal: np.ndarray, h: float, roi_dst: np.ndarray, ego: np.ndarray | None,
+               cfg: StepConfig) -> StepEstimate:
+    """Length (m) of the step src → dst at which the road warped from ``img_src`` best matches ``img_dst``
+    (:func:`road_scorer`; the destination camera sits at ``T_src``'s centre + d · ``direction`` (3,) unit).
+    ``roi_dst`` (H, W) bool: road pixels of the destination view to compare.
+    """
+    score_at = road_scorer(img_src, img_dst, K, T_src, R_dst, normal, h, roi_dst, ego, cfg)
+
+    def score(d: float) -> float:
+        return score_at(T_src[:3, 3] + d * direction)
 
     coarse = np.r_[0.0, np.geomspace(0.05, cfg.max_step_m, cfg.coarse - 1)]
     s_coarse = np.array([score(d) for d in coarse])
@@ -181,18 +194,31 @@ def sweep_step(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: n
     return StepEstimate(best, peak, margin, bool(peak >= cfg.min_peak and margin >= cfg.min_margin), sweep, sc)
 
 
-def road_steps(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_height: float,
-               ego_mask: np.ndarray | None = None, cfg: StepConfig | None = None) -> list[StepEstimate]:
-    """Length (m) of each step i → i+1 of the path (N-1 estimates) from the road's image motion.
+@dataclass
+class _Pair:
+    """One step i -> i+1 ready to sweep: the images (H, W) float32 at the matching scale, K (3, 3) scaled to
+    them, the poses (4, 4), the direction of travel and the road's upward normal (3,) (world), the
+    destination's road pixels (H, W) bool (None: too few to compare) and the ego mask (H, W) or None."""
 
-    ``T_world_cam`` (N, 4, 4) z-up; rotations and the directions of travel are used, not the lengths.
-    ``camera_height`` (m) is the mount's height over the road; ``ego_mask`` (H, W) True on the ego vehicle.
-    """
+    i: int
+    src: np.ndarray
+    dst: np.ndarray
+    K: np.ndarray
+    Ta: np.ndarray
+    Tb: np.ndarray
+    direction: np.ndarray
+    normal: np.ndarray
+    roi: np.ndarray | None
+    ego: np.ndarray | None
+
+
+def _pairs(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_height: float,
+           ego_mask: np.ndarray | None, cfg: StepConfig) -> Iterator[_Pair]:
+    """The consecutive steps of a path as :class:`_Pair` (images read once, at ``cfg.width``)."""
     import cv2
 
     from pavemap.io.sequence import load_gray
 
-    cfg = cfg or StepConfig()
     width = max(8, round(camera.width * min(1.0, cfg.width / camera.width)))
     grays = [load_gray(p, width).astype(np.float32) / 255.0 for p in images]
     Hs, Ws = max(8, round(camera.height * width / camera.width)), width
@@ -214,24 +240,69 @@ def road_steps(images: list[Path], T_world_cam: np.ndarray, camera: Camera, came
         ego = cv2.resize(ego_mask.astype(np.uint8), (Ws, Hs), interpolation=cv2.INTER_NEAREST) > 0
         ego = cv2.dilate(ego.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     up = np.array([0.0, 0.0, 1.0])
-    out = []
     for i in range(len(images) - 1):
         Ta, Tb = T_world_cam[i], T_world_cam[i + 1]
-        Ra, Rb, Ca, Cb = Ta[:3, :3], Tb[:3, :3], Ta[:3, 3], Tb[:3, 3]
-        step = Cb - Ca
+        step = Tb[:3, 3] - Ta[:3, 3]
         L = float(np.linalg.norm(step))
         # the direction of travel; a stopped car's SfM step has none, so take the camera's forward axis
-        dir_w = step / L if L > 1e-6 else Ra[:, 2] - (Ra[:, 2] @ up) * up
+        dir_w = step / L if L > 1e-6 else Ta[:3, 2] - (Ta[:3, 2] @ up) * up
         dir_w /= np.linalg.norm(dir_w)
         # the car drives on the road, so the road's normal is square to the direction of travel; the
         # world's up alone leaves the mount's pitch to the road in it (0.8 deg made KITTI's steps 20 % long)
         n_w = up - (up @ dir_w) * dir_w if L > 1e-6 else up
         n_w /= np.linalg.norm(n_w)
-        roi = _road_roi(rays, -Rb.T @ n_w, camera_height, cfg, ego)
-        if roi.sum() < 500:
+        roi = _road_roi(rays, -Tb[:3, :3].T @ n_w, camera_height, cfg, ego)
+        yield _Pair(i, grays[i], grays[i + 1], K, Ta, Tb, dir_w, n_w, roi if roi.sum() >= 500 else None, ego)
+
+
+def road_steps(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_height: float,
+               ego_mask: np.ndarray | None = None, cfg: StepConfig | None = None) -> list[StepEstimate]:
+    """Length (m) of each step i → i+1 of the path (N-1 estimates) from the road's image motion.
+
+    ``T_world_cam`` (N, 4, 4) z-up; rotations and the directions of travel are used, not the lengths.
+    ``camera_height`` (m) is the mount's height over the road; ``ego_mask`` (H, W) True on the ego vehicle.
+    """
+    cfg = cfg or StepConfig()
+    out = []
+    for p in _pairs(images, T_world_cam, camera, camera_height, ego_mask, cfg):
+        if p.roi is None:
             out.append(StepEstimate(float("nan"), float("nan"), 0.0, False, np.zeros(0), np.zeros(0)))
             continue
-        out.append(sweep_step(grays[i], grays[i + 1], K, Ta, Rb, dir_w, n_w, camera_height, roi, ego, cfg))
+        out.append(sweep_step(p.src, p.dst, p.K, p.Ta, p.Tb[:3, :3], p.direction, p.normal, camera_height, p.roi,
+                              p.ego, cfg))
+    return out
+
+
+def road_sideways(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_height: float,
+                  ego_mask: np.ndarray | None = None, cfg: StepConfig | None = None,
+                  offsets_m: np.ndarray | None = None) -> list[dict]:
+    """What the road says of each step's sideways component: with the step as ``T_world_cam`` has it (its
+    length, its rotations), the destination camera moved by each of ``offsets_m`` (default -0.4..0.4 m by
+    5 cm) square to the direction of travel on the road; per step ``{"step", "length_m", "best_offset_m",
+    "peak", "at_zero", "margin"}`` (NCC; ``best_offset_m`` None where the road could not be compared).
+
+    A check of a path's shape, not a correction: the lane lines and the asphalt's grain move sideways in
+    the image with the camera, so an offset of 0 says the SfM's sideways motion is what the road shows.
+    """
+    cfg = cfg or StepConfig()
+    offsets = np.round(np.linspace(-0.4, 0.4, 17), 3) if offsets_m is None else np.asarray(offsets_m, float)
+    out = []
+    for p in _pairs(images, T_world_cam, camera, camera_height, ego_mask, cfg):
+        L = float(np.linalg.norm(p.Tb[:3, 3] - p.Ta[:3, 3]))
+        row = {"step": p.i, "length_m": round(L, 3), "best_offset_m": None, "peak": None, "at_zero": None,
+               "margin": None}
+        if p.roi is not None and L > 0.25:  # a standing car has no direction of travel to be square to
+            side = np.cross(p.normal, p.direction)
+            score = road_scorer(p.src, p.dst, p.K, p.Ta, p.Tb[:3, :3], p.normal, camera_height, p.roi, p.ego, cfg)
+            sc = np.array([score(p.Tb[:3, 3] + o * side) for o in offsets])
+            if np.isfinite(sc).any():
+                k = int(np.nanargmax(sc))
+                far = np.abs(offsets - offsets[k]) > 0.15
+                rival = float(np.nanmax(sc[far])) if np.isfinite(sc[far]).any() else float("nan")
+                zero = int(np.argmin(np.abs(offsets)))
+                row.update(best_offset_m=float(offsets[k]), peak=round(float(sc[k]), 3),
+                           at_zero=round(float(sc[zero]), 3), margin=round(float(sc[k] - rival), 3))
+        out.append(row)
     return out
 
 
@@ -259,4 +330,4 @@ def relength_path(C: np.ndarray, steps: list[StepEstimate]) -> tuple[np.ndarray,
     return out, factor
 
 
-__all__ = ["StepConfig", "StepEstimate", "relength_path", "road_steps", "sweep_step"]
+__all__ = ["StepConfig", "StepEstimate", "relength_path", "road_scorer", "road_sideways", "road_steps", "sweep_step"]
