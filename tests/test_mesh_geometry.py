@@ -149,3 +149,37 @@ def test_ground_points_hand_their_images_to_the_pool(drive, monkeypatch):
     own = prepare(seq, dataclasses.replace(cfg, ground_points="off"), torch.device("cpu"), notes.append)
     assert own.gp is None
     assert torch.equal(shared.pool.rgb, own.pool.rgb) and torch.equal(shared.pool.uv, own.pool.uv)
+
+
+def test_defects_say_whether_they_lie_where_the_texture_may_hold_a_vehicle():
+    """mark_observed sets each defect's ``observed`` and ``texture_contested`` from the mesh's layers (the
+    GIS and CSV property of that name), and leaves a layer the mesh lacks unset."""
+    import torch
+    from shapely.geometry import box
+
+    from pavemap.geometry import HeightField
+    from pavemap.mesh.geometry import mark_observed
+    from pavemap.mesh.model import RoadMesh
+    from pavemap.types import DefectInstance
+
+    ny, nx = 40, 60
+    valid = torch.ones(ny, nx, dtype=torch.bool)
+    contested = torch.zeros(ny, nx, dtype=torch.bool)
+    contested[10:20, 30:50] = True  # x 3.0-4.9 m, y 1.0-1.9 m
+    surf = HeightField(0.0, 0.0, 0.1, torch.zeros(ny, nx), valid)
+    mesh = RoadMesh(surf, torch.zeros(ny * nx, 3), torch.zeros(ny * nx, 1), [0], False, valid.clone(), None,
+                    contested)
+
+    def inst(i: int, x: float, y: float) -> DefectInstance:
+        return DefectInstance(id=i, cls=3, polygon=box(x - 0.1, y - 0.1, x + 0.1, y + 0.1), severity_mean=0.5,
+                              severity_max=0.5, confidence=0.5, observations=2, probability=0.9, area_m2=0.04,
+                              length_m=0.2, centroid=(x, y), priority="monitor")
+
+    on, off, outside = inst(1, 4.0, 1.5), inst(2, 1.0, 3.0), inst(3, 50.0, 1.5)
+    mark_observed([on, off, outside], mesh)
+    assert on.extra == {"observed": True, "texture_contested": True}
+    assert off.extra == {"observed": True, "texture_contested": False}
+    assert outside.extra == {"observed": False, "texture_contested": False}  # off the grid: neither
+    unchecked = inst(4, 4.0, 1.5)
+    mark_observed([unchecked], RoadMesh(surf, mesh.rgb, mesh.sem_logits, [0], False, None, None, None))
+    assert unchecked.extra == {}

@@ -58,6 +58,9 @@ PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
     ("observed", "bool", "", "its centre lies where the mesh height was measured (a ground point or depth sample "
      "within 2 m; false: the road carried along from where it was, the position less certain; absent with a mesh "
      "without the observed layer)"),
+    ("texture_contested", "bool", "", "its centre lies where the BEV texture may hold a vehicle (views disagree "
+     "with the texture there, bev_contested.npy): a detection may have fired on a vehicle; check its photo; "
+     "absent with a mesh without the texture check)"),
     # maintenance measures (issue 16, pavemap.maintain); absent where not assessed
     ("severity_level", "str", "", "low / medium / high by the maintenance policy (pavemap.maintain.policy)"),
     ("certainty", "str", "", "confirmed / probable / single sighting (probability and observation count)"),

@@ -282,15 +282,19 @@ def _r(v: float | None, nd: int = 4) -> float | None:
 
 def mark_observed(instances: list, mesh) -> None:  # noqa: ANN001 - DefectInstance list, RoadMesh
     """Set ``extra["observed"]`` of each defect instance: whether the mesh vertex nearest its centre is
-    observed (a training pixel or ground point reaches it). Left unset when the mesh has no observed layer."""
-    if mesh.observed is None:
-        return
-    s, obs = mesh.surface, mesh.observed.cpu().numpy()
-    for inst in instances:
-        i = int(round((float(inst.centroid[0]) - s.x0) / s.res))
-        j = int(round((float(inst.centroid[1]) - s.y0) / s.res))
-        inside = 0 <= j < obs.shape[0] and 0 <= i < obs.shape[1]
-        inst.extra["observed"] = bool(inside and obs[j, i])
+    observed (a training pixel or ground point reaches it); and ``extra["texture_contested"]``: whether it lies
+    where the texture may hold a vehicle (:mod:`pavemap.mesh.texture_check`: a detection there may have fired
+    on one). Each is left unset when the mesh has no such layer."""
+    s = mesh.surface
+    for key, layer in (("observed", mesh.observed), ("texture_contested", mesh.contested)):
+        if layer is None:
+            continue
+        on = layer.cpu().numpy()
+        for inst in instances:
+            i = int(round((float(inst.centroid[0]) - s.x0) / s.res))
+            j = int(round((float(inst.centroid[1]) - s.y0) / s.res))
+            inside = 0 <= j < on.shape[0] and 0 <= i < on.shape[1]
+            inst.extra[key] = bool(inside and on[j, i])
 
 
 def depth_image(gp: GroundPoints, view_id: int, width: int, height: int, scale: float = 1.0) -> np.ndarray:
