@@ -300,3 +300,11 @@ def test_report_says_where_the_texture_may_hold_a_vehicle():
     clean = build_report_html([], metrics={"mesh": {"texture_check": {**tc, "contested_m2": 0.0, "patches": []}}})
     assert 'id="texture-warning"' not in clean and 'id="texture-warning"' not in build_report_html([])
     assert 'id="layer-contested"' not in clean
+    # a defect that lies where the texture may hold a vehicle says so in its work-list row
+    kw = sample_inputs(2, seed=1)
+    kw["instances"][0].extra["texture_contested"] = True
+    kw["instances"][1].extra["texture_contested"] = False
+    rows = re.findall(r'<tr class="wl[^"]*" data-id="(\d+)"[^>]*>(.*?)</tr>', build_report_html(
+        kw["instances"], detections=kw["detections"]), re.S)
+    flagged = {int(i) for i, row in rows if "a vehicle may have been here" in row}
+    assert flagged == {kw["instances"][0].id}

@@ -102,8 +102,11 @@ def _cell(k: str, p: dict) -> str:
     if k == "id":
         return f'<td class="num id">#{p["id"]}</td>'
     if k == "code":
+        # a defect where the texture may hold a vehicle (pavemap.mesh.texture_check): its detections may be one
+        warn = ('<div class="muted vehicle-warning">a vehicle may have been here: check the photo</div>'
+                if p.get("texture_contested") else "")
         return (f'<td><span class="sw" style="background:{CLASS_COLOURS.get(str(v), "#999")}"></span>{_esc(v)} '
-                f'<span class="muted">{_esc(p.get("name", ""))}</span></td>')
+                f'<span class="muted">{_esc(p.get("name", ""))}</span>{warn}</td>')
     if k == "priority":
         return f'<td><span class="pill {_esc(slug(v))}">{_esc(v)}</span></td>'
     if k == "severity_level":
