@@ -408,7 +408,8 @@ def _texture_banner(metrics: dict | None) -> str:
     return ('<div id="texture-warning" role="note" style="border:2px solid #8a6d00;background:#fffbe6;padding:8px 12px;'
             f'margin:0 0 12px"><b style="color:#8a6d00">BEV texture: may hold vehicles</b> over '
             f'{tc["contested_m2"]:.1f} m² in {tc.get("patch_count", 0)} patch(es), where some views disagree with '
-            f'it, or the poses or the surface are off there (bev_contested.npy; dashed circles on the map)<ul>{where}'
+            f'it: a vehicle, sun glare on the road, or poses or surface off there (bev_contested.npy; dashed circles '
+            f'on the map)<ul>{where}'
             f'{f"<li>… {more} more</li>" if more > 0 else ""}</ul>'
             'Detections come from the frames, not the texture: the map of defects is not affected. A vehicle that '
             'covered the road in every view that saw it cannot be told from the road by this check.</div>')

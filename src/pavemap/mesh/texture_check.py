@@ -150,6 +150,7 @@ def check_model_texture(model, mesh: RoadMesh, classes: list[SemanticClass], poo
         top = patches[0]
         warn(f"the BEV texture may hold vehicles or other moving objects over {area:.1f} m² in {out['patch_count']} "
              f"patch(es) (largest {top['area_m2']:.1f} m² at x {top['x_m']:.1f}, y {top['y_m']:.1f} m): views there "
-             "disagree with it, or the poses or the surface are off there (bev_contested.npy; `--set "
+             "disagree with it, from a vehicle, sun glare on the road, or poses or surface off there "
+             "(bev_contested.npy; `--set "
              "mesh.moving_cutoff=0.15` leaves out a vehicle that a minority of the views saw)")
     return torch.from_numpy(keep), out
