@@ -214,6 +214,29 @@ def test_initial_bake_reusing_the_visible_pixel_march_changes_nothing(seq, monke
     assert torch.equal(mesh_reused.surface.heights, mesh_again.surface.heights)
 
 
+def test_the_visible_pixel_march_keeps_each_hits_row_in_the_thinned_pool(seq, monkeypatch):
+    """visible_pixels drops the pixels that miss the mesh and keeps its march: each hit's ``rows`` then point
+    at its own pixel in the thinned pool (what the texture check reads)."""
+    import pavemap.mesh.train as train
+
+    got = []
+    real = train.visible_pixels
+
+    def spy(model, pool, *a, **k):  # noqa: ANN001, ANN202
+        thinned, hits = real(model, pool, *a, **k)
+        got.append((len(pool), thinned, hits))
+        return thinned, hits
+
+    monkeypatch.setattr(train, "visible_pixels", spy)
+    reconstruct(seq, None, MeshConfig(resolution=0.1, crop_m=4.0, epochs=0, render_scale=1.0, eval_scale=1.0,
+                                      holdout_every=3, device="cpu", threads=1, resume=False), progress=False)
+    before, pool, hits = got[0]
+    assert hits and len(pool) < before  # some pixels missed: the rows were renumbered
+    rows = torch.cat([h.rows for h in hits])
+    assert torch.equal(pool.rgb[rows], torch.cat([h.c8 for h in hits]))
+    assert torch.equal(pool.view[rows], torch.cat([h.view for h in hits])) and len(torch.unique(rows)) == len(rows)
+
+
 def test_texture_check_takes_the_final_bake_march_and_changes_nothing(seq, monkeypatch):
     """The texture check reads the final bake's march (no march of its own) and leaves the mesh as it is, to
     the bit; with the moving-pixel rejection on it checks every pixel, the dropped ones too (its own march)."""
@@ -343,7 +366,13 @@ def test_texture_check_marks_where_a_vehicle_is_in_the_texture_and_nothing_on_a_
     # the patch lies where the vehicle's pixels land (the squares they reach)
     under = torch.isfinite(check(painted.subset(car)).share).numpy()
     assert under[keep].mean() > 0.95
-    # without a disagreeing second view nothing is contested: one view's glare is not a vehicle
-    one = check_texture(surf, painted, painted.T, 60.0, bake_colours(surf, painted, painted.T, 60.0)[0], None,
-                        cutoff=0.15, blob_px=1, min_share=0.1, min_views=int(got.views.max()) + 1, block=5)
-    assert not bool(one.contested.any())
+    # the same paint in one view only (a glare): fewer squares the more views are asked to disagree, and no
+    # patch of 1 m² with the default 2
+    solo = car & (pool.view == 2)
+    one = dataclasses.replace(pool, rgb=torch.where(solo[:, None], torch.tensor([30, 40, 90], dtype=torch.uint8),
+                                                    pool.rgb))
+    rgb1 = bake_colours(surf, one, one.T, 60.0)[0]
+    marked = [check_texture(surf, one, one.T, 60.0, rgb1, None, cutoff=0.15, blob_px=1, min_share=0.1,
+                            min_views=k, block=5).contested.numpy() for k in (1, 2)]
+    assert int(solo.sum()) > 100 and marked[0].sum() > marked[1].sum()
+    assert contested_patches(marked[1], g.spec.res, 1.0)[1] == []

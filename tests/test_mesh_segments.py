@@ -94,7 +94,7 @@ def test_path_pieces_cut_at_a_gap_and_name_it():
     assert path_pieces(_line(50, 1.0), list(range(50))) [0].shape == (50, 2)
 
 
-def _tile(xy: np.ndarray, offset: float, res: float = 0.1, crop: float = 3.0) -> RoadMesh:
+def _tile(xy: np.ndarray, offset: float, res: float = 0.1, crop: float = 3.0, contested: bool = True) -> RoadMesh:
     """A tile of the plane z = 0.01 x + offset over the crop of ``xy``."""
     grid = build_grid(xy, res, crop)
     g = grid.spec
@@ -102,12 +102,12 @@ def _tile(xy: np.ndarray, offset: float, res: float = 0.1, crop: float = 3.0) ->
     h = torch.from_numpy((0.01 * X + offset).astype(np.float32))
     rgb = torch.full((g.ny, g.nx, 3), 0.5)
     sem = torch.zeros((g.ny, g.nx, 2))
-    contested = torch.from_numpy((X > 10) & (X < 12) & grid.valid)  # a vehicle in the texture, 2 m of road
+    layer = torch.from_numpy((X > 10) & (X < 12) & grid.valid) if contested else None  # a vehicle, 2 m of road
     return RoadMesh(HeightField(g.x0, g.y0, g.res, h, torch.from_numpy(grid.valid)), rgb, sem, [0, 1], True,
-                    torch.from_numpy(grid.valid.copy()), None, contested)
+                    torch.from_numpy(grid.valid.copy()), None, layer)
 
 
-def _blend(offsets: tuple[float, float]) -> tuple[RoadMesh, dict, GridSpec]:
+def _blend(offsets: tuple[float, float], contested: bool = True) -> tuple[RoadMesh, dict, GridSpec]:
     xy = _line(121, 1.0)  # 120 m, cut at 60 m, overlap 20 m
     s = path_metres(xy)
     plans = plan_segments(xy, 60.0, 20.0, 10.0)
@@ -116,7 +116,7 @@ def _blend(offsets: tuple[float, float]) -> tuple[RoadMesh, dict, GridSpec]:
     seams = []
     for plan, off in zip(plans, offsets, strict=True):
         own = xy[list(plan.own)]
-        tile = _tile(own, off)
+        tile = _tile(own, off, contested=contested)
         from pavemap.mesh.segments import _tile_grid
 
         pxy, ps = own_path(own, s[list(plan.own)])
@@ -138,6 +138,8 @@ def test_blend_is_continuous_across_the_seam_and_measures_the_step():
     assert mesh.observed.numpy()[j, (x > 1) & (x < 119)].all()
     c = mesh.contested.numpy()[j]  # the stitched texture says where a tile's texture may hold a vehicle
     assert c[(x > 10.05) & (x < 11.95)].all() and not c[(x < 9.95) | (x > 12.05)].any()
+    unchecked, _, _ = _blend((0.0, 0.02), contested=False)  # tiles without the check: the drive has none
+    assert unchecked.contested is None
 
 
 def test_overlap_with_a_segment_not_before_it_on_the_path_is_no_seam():

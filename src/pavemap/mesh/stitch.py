@@ -99,6 +99,7 @@ class Stitcher:
     sums: dict[str, np.ndarray] = field(default_factory=dict)
     samples: list[np.ndarray] = field(default_factory=list)
     cells: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    texture_checked: bool = False  # some tile has the texture check's layer (else the drive has none either)
 
     def _alloc(self, channels: int) -> None:
         self.channels = channels
@@ -167,6 +168,7 @@ class Stitcher:
         sums["observed"][k] |= observed & (w > OWNED)
         if tile.contested is not None:
             sums["contested"][k] |= tile.contested.cpu().numpy().reshape(-1)[ids].astype(bool) & (w > OWNED)
+            self.texture_checked = True
         sums["owner"][k] = np.where(w > OWNED, number, sums["owner"][k])
         if tile.samples is not None and len(tile.samples):
             self.samples.append(_owned_samples(tile.samples, s.grid, weight))
@@ -193,14 +195,14 @@ class Stitcher:
         observed[cells] = sums.pop("observed")[k]
         contested = np.zeros(n, bool)
         contested[cells] = sums.pop("contested")[k]
+        contested_t = torch.from_numpy(contested.reshape(g.shape)) if self.texture_checked else None
         rgb = sums.pop("rgb")[k] * inv[:, None]
         sem = sums.pop("sem")[k] * inv[:, None]
         surf = HeightField(g.x0, g.y0, g.res, torch.from_numpy(h.reshape(g.shape)),
                            torch.from_numpy(valid.reshape(g.shape)))
         samples = np.concatenate(self.samples).astype(np.float32) if self.samples else None
         return RoadMesh(surf, torch.from_numpy(rgb), torch.from_numpy(sem), list(class_ids), has_semantics,
-                        torch.from_numpy(observed.reshape(g.shape)), samples,
-                        torch.from_numpy(contested.reshape(g.shape)))
+                        torch.from_numpy(observed.reshape(g.shape)), samples, contested_t)
 
 
 def _owned_samples(samples: np.ndarray, g: GridSpec, weight: np.ndarray) -> np.ndarray:

@@ -3,16 +3,17 @@
 The final bake averages every training pixel that lands on a vertex. A vehicle passing the camera covers a
 road vertex in some of those views; where it covers most of them, its colour *is* the texture there, and no
 per-pixel rejection (:func:`pavemap.mesh.bake.static_pixels`) can take it out again, because the majority
-agrees with it. What is still visible is the disagreement: some views saw something else at that vertex.
-This module measures it on the final texture, with the views' exposures, and marks the vertices where a
-share of their pixels' weight disagrees, so that the report can say *where* the texture may hold a vehicle
-instead of claiming a clean road.
+agrees with it. What is still visible is the disagreement: some views saw something else there. This module
+measures it on the final texture, with the views' exposures, and marks the squares of the grid where a share
+of their pixels disagrees, so that the report can say *where* the texture may hold a vehicle instead of
+claiming a clean road.
 
 Disagreeing pixels: colour distance to the texture where they land (exposure-compensated, RGB in [0, 1])
 above ``cutoff``, and part of a blob at least 2 ``blob_px`` + 1 pixels wide in its image (a vehicle is a
-blob; a paint edge seen through a surface a centimetre off is a thin line). A vertex is *contested* where
-the disagreeing share of its pixel weight is at least ``min_share`` and at least ``min_views`` views
-disagree there (one view's glare is not a vehicle).
+blob; a paint edge seen through a surface a centimetre off is a thin line). Pixels are counted per square of
+``block`` x ``block`` cells, each pixel once at its triangle's nearest vertex (at render scale a vertex sees
+a handful). A square is *contested* where the disagreeing share of its pixels is at least ``min_share`` and
+at least ``min_views`` views disagree there (fewer squares from one view's glare).
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ from pavemap.types import SemanticClass
 
 @dataclass
 class TextureCheck:
-    """Per grid vertex, dense (ny, nx): ``share`` float32 the disagreeing share of the pixel weight (NaN where
-    no pixel lands), ``views`` int32 the number of views with disagreeing pixels there, ``seen_by`` int32 the
-    number of views with pixels there, ``contested`` bool."""
+    """Per grid vertex, dense (ny, nx), each the value of the vertex's square: ``share`` float32 the
+    disagreeing share of its pixels (NaN where no pixel lands), ``views`` int32 the number of views with
+    disagreeing pixels there, ``seen_by`` int32 the number of views with pixels there, ``contested`` bool."""
 
     share: torch.Tensor
     views: torch.Tensor
@@ -59,6 +60,8 @@ def check_texture(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_di
     resid = torch.full((len(pool),), float("nan"), dtype=torch.float32, device=rgb.device)
     at = torch.full((len(pool),), -1, dtype=torch.long, device=rgb.device)  # each hit pixel's block
     for h in march_pool(surface, pool, T, max_dist) if hits is None else hits:
+        if h.rows is None:
+            raise ValueError("check_texture: hits without their pool rows (make them with march_pool or batch_hits)")
         obs = exposure_model.compensate(h.c8.double() / 255.0, exposure, h.view)
         resid[h.rows] = torch.linalg.norm(obs - (h.w.double()[..., None] * flat[h.vid]).sum(1), dim=1).float()
         near = h.vid.gather(1, h.w.argmax(1, keepdim=True)).squeeze(1)
@@ -99,26 +102,28 @@ def contested_patches(contested: np.ndarray, res: float, min_patch_m2: float
     lab, n = ndimage.label(contested, structure=np.ones((3, 3), bool))
     if n == 0:
         return np.zeros_like(contested), []
-    counts = np.bincount(lab.reshape(-1), minlength=n + 1)
+    flat = lab.reshape(-1)
+    counts = np.bincount(flat, minlength=n + 1)
+    jj, ii = np.divmod(np.arange(flat.size), contested.shape[1])
+    ci = np.bincount(flat, weights=ii, minlength=n + 1) / np.maximum(counts, 1)  # one pass for every patch
+    cj = np.bincount(flat, weights=jj, minlength=n + 1) / np.maximum(counts, 1)
     big = np.flatnonzero(counts * res * res >= min_patch_m2)
     big = big[big > 0]
     keep = np.isin(lab, big)
-    patches = []
-    for k in big[np.argsort(-counts[big])]:
-        j, i = np.nonzero(lab == k)
-        patches.append({"area_m2": float(counts[k] * res * res), "centre_ij": (float(i.mean()), float(j.mean()))})
+    patches = [{"area_m2": float(counts[k] * res * res), "centre_ij": (float(ci[k]), float(cj[k]))}
+               for k in big[np.argsort(-counts[big], kind="stable")]]
     return keep, patches
 
 
-def texture_summary(contested: np.ndarray, g: GridSpec, min_patch_m2: float, seen_cells: int
+def texture_summary(contested: np.ndarray, g: GridSpec, min_patch_m2: float, mesh_cells: int
                     ) -> tuple[np.ndarray, dict]:
     """The contested cells (ny, nx) bool in patches of at least ``min_patch_m2`` on grid ``g`` and what
-    ``metrics.json`` says of them (``texture_check``): area, share of the ``seen_cells``, patches largest first
-    (area and centre in the grid's metres, at most 20 listed)."""
+    ``metrics.json`` says of them (``texture_check``): area, share of the mesh's ``mesh_cells`` (its crop),
+    patches largest first (area and centre in the grid's metres, at most 20 listed)."""
     keep, patches = contested_patches(contested, g.res, min_patch_m2)
     area = float(keep.sum()) * g.res * g.res
     return keep, {
-        "contested_m2": round(area, 2), "contested_share_of_seen": round(float(keep.sum() / max(1, seen_cells)), 5),
+        "contested_m2": round(area, 2), "contested_share": round(float(keep.sum() / max(1, mesh_cells)), 5),
         "patches": [{"area_m2": round(p["area_m2"], 2), "x_m": round(g.x0 + p["centre_ij"][0] * g.res, 2),
                      "y_m": round(g.y0 + p["centre_ij"][1] * g.res, 2)} for p in patches[:20]],
         "patch_count": len(patches)}
@@ -140,7 +145,8 @@ def check_model_texture(model, mesh: RoadMesh, classes: list[SemanticClass], poo
     where = mesh.surface.valid.cpu().numpy() & torch.isfinite(tc.share).cpu().numpy()
     if mesh.has_semantics and mesh.class_ids:
         where &= np.isin(mesh.labels().cpu().numpy(), [c.id for c in classes if c.road or c.movable])
-    keep, out = texture_summary(tc.contested.cpu().numpy() & where, g, cfg.texture_min_patch_m2, int(where.sum()))
+    valid = mesh.surface.valid.cpu().numpy()
+    keep, out = texture_summary(tc.contested.cpu().numpy() & where, g, cfg.texture_min_patch_m2, int(valid.sum()))
     # a vehicle in every view that saw the road is the majority there and invisible to the check: say how much
     # of the road's texture rests on too few views to tell (the shared nuScenes clip's bus, README)
     few = where & (tc.seen_by.cpu().numpy() < 2 * max(1, cfg.texture_min_views))
