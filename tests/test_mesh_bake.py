@@ -237,7 +237,7 @@ def test_the_visible_pixel_march_keeps_each_hits_row_in_the_thinned_pool(seq, mo
     assert torch.equal(pool.view[rows], torch.cat([h.view for h in hits])) and len(torch.unique(rows)) == len(rows)
 
 
-def test_texture_check_takes_the_final_bake_march_and_changes_nothing(seq, monkeypatch):
+def test_texture_check_takes_the_final_bake_march_and_changes_nothing(seq, monkeypatch, tmp_path):
     """The texture check reads the final bake's march (no march of its own) and leaves the mesh as it is, to
     the bit; with the moving-pixel rejection on it checks every pixel, the dropped ones too (its own march)."""
     import pavemap.mesh.texture_check as texture_check
@@ -251,6 +251,12 @@ def test_texture_check_takes_the_final_bake_march_and_changes_nothing(seq, monke
     plain, m_plain = reconstruct(seq, None, MeshConfig(**cfg, texture_check=False), progress=False)
     assert own == [] and "texture_check" in m and "texture_check" not in m_plain
     assert checked.contested is not None and plain.contested is None
+    from pavemap.mesh import write_outputs
+
+    write_outputs(tmp_path / "plain", plain, m_plain, seq.classes)  # not checked is not clean: no raster
+    write_outputs(tmp_path / "checked", checked, m, seq.classes)
+    assert not (tmp_path / "plain" / "bev_contested.npy").exists()
+    assert (tmp_path / "checked" / "bev_contested.npy").is_file()
     assert torch.equal(checked.rgb, plain.rgb) and torch.equal(checked.surface.heights, plain.surface.heights)
     reconstruct(seq, None, MeshConfig(**cfg, moving_cutoff=0.01, moving_blob_px=0), progress=False)
     assert own == [1]

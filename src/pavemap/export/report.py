@@ -367,9 +367,14 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
 """
 
 
+def _stage1(metrics: dict | None, key: str) -> dict:
+    """Stage 1's ``key`` section from the run's metrics (``mesh`` → key) or a mesh's own metrics; {} when none."""
+    return ((metrics or {}).get("mesh") or {}).get(key) or (metrics or {}).get(key) or {}
+
+
 def _geometry_banner(metrics: dict | None) -> str:
     """A visible banner with the run's geometry warnings (stage 1's self-check, issue 12); empty when none."""
-    geo = ((metrics or {}).get("mesh") or {}).get("geometry") or (metrics or {}).get("geometry") or {}
+    geo = _stage1(metrics, "geometry")
     warns = geo.get("warnings") or []
     if not warns:
         return ""
@@ -381,17 +386,13 @@ def _geometry_banner(metrics: dict | None) -> str:
             f'padding:8px 12px;margin:0 0 12px"><b style="color:{colour}">{head}</b><ul>{items}</ul></div>')
 
 
-def _texture_check(metrics: dict | None) -> dict:
-    """Stage 1's texture check from the run's metrics (``mesh`` → ``texture_check``) or a mesh's own; {} when none."""
-    return ((metrics or {}).get("mesh") or {}).get("texture_check") or (metrics or {}).get("texture_check") or {}
-
-
 def _contested_el(metrics: dict | None) -> str:
     """The texture check's patches on the map: a dashed circle of each patch's area around its centre (the
     patches, not their outlines, are in metrics.json; bev_contested.npy has the cells); empty when none."""
+    patches = _stage1(metrics, "texture_check").get("patches") or []
     circles = "".join(f'<circle cx="{p["x_m"]:.2f}" cy="{-p["y_m"]:.2f}" '
                       f'r="{max(0.5, (p["area_m2"] / np.pi) ** 0.5):.2f}"><title>texture may hold a vehicle: '
-                      f'{p["area_m2"]:.1f} m²</title></circle>' for p in _texture_check(metrics).get("patches") or [])
+                      f'{p["area_m2"]:.1f} m²</title></circle>' for p in patches)
     return (f'<g id="layer-contested" fill="none" stroke="#e6a100" stroke-width="0.25" stroke-dasharray="0.6 0.4">'
             f"{circles}</g>") if circles else ""
 
@@ -399,7 +400,7 @@ def _contested_el(metrics: dict | None) -> str:
 def _texture_banner(metrics: dict | None) -> str:
     """Where the BEV texture may hold vehicles (stage 1's texture check, pavemap.mesh.texture_check; issue 13);
     empty when nothing is contested."""
-    tc = _texture_check(metrics)
+    tc = _stage1(metrics, "texture_check")
     if not tc.get("contested_m2"):
         return ""
     where = "".join(f"<li>{p['area_m2']:.1f} m² at x {p['x_m']:.1f}, y {p['y_m']:.1f} m (local metres)</li>"

@@ -28,8 +28,8 @@ def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.nd
     """Grid-order rasters: rgb (ny, nx, 3) uint8, semantic (ny, nx) int16 class id (-1 none),
     semantic_rgb (ny, nx, 3) uint8, height (ny, nx) float32 (NaN off the crop), valid (ny, nx) bool,
     observed (ny, nx) bool (a training pixel or ground point reaches the vertex; the crop when unknown),
-    contested (ny, nx) bool (some views disagree with the texture there: it may hold a vehicle; all False when
-    the mesh was not checked)."""
+    contested (ny, nx) bool (some views disagree with the texture there: it may hold a vehicle) or None when
+    the mesh was not checked (not checked is not clean: no raster is written then)."""
     valid = mesh.surface.valid.cpu().numpy()
     vid = mesh.vertex_ids.cpu().numpy()
     rgb = np.zeros((valid.size, 3), np.uint8)
@@ -44,8 +44,7 @@ def bev_rasters(mesh: RoadMesh, classes: list[SemanticClass]) -> dict[str, np.nd
     h = mesh.surface.heights.detach().cpu().numpy().astype(np.float32).copy()
     h[~valid] = np.nan
     observed = valid if mesh.observed is None else mesh.observed.cpu().numpy().astype(bool) & valid
-    contested = (np.zeros_like(valid) if mesh.contested is None
-                 else mesh.contested.cpu().numpy().astype(bool) & valid)
+    contested = None if mesh.contested is None else mesh.contested.cpu().numpy().astype(bool) & valid
     return {"rgb": rgb, "semantic": labels, "semantic_rgb": sem_rgb, "height": h, "valid": valid,
             "observed": observed, "contested": contested}
 
@@ -167,6 +166,8 @@ def write_outputs(out: Path, mesh: RoadMesh, metrics: dict, classes: list[Semant
         atomic_write_bytes(out / name, _png_bytes(np.ascontiguousarray(img[::-1])))
         paths[name] = out / name
     for name in ("rgb", "semantic", "height", "valid", "observed", "contested"):
+        if r[name] is None:
+            continue
         _save_npy(out / f"bev_{name}.npy", r[name])
         paths[f"bev_{name}.npy"] = out / f"bev_{name}.npy"
     atomic_write_json(out / "grid.json", mesh.grid.to_dict())

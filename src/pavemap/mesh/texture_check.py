@@ -142,10 +142,10 @@ def check_model_texture(model, mesh: RoadMesh, classes: list[SemanticClass], poo
     g = model.grid.spec
     tc = check_texture(field, pool, T, cfg.max_dist, rgb, exposure, cfg.texture_cutoff, cfg.texture_blob_px,
                        cfg.texture_min_share, cfg.texture_min_views, max(1, round(cfg.texture_block_m / g.res)), hits)
-    where = mesh.surface.valid.cpu().numpy() & torch.isfinite(tc.share).cpu().numpy()
+    valid = mesh.surface.valid.cpu().numpy()
+    where = valid & torch.isfinite(tc.share).cpu().numpy()
     if mesh.has_semantics and mesh.class_ids:
         where &= np.isin(mesh.labels().cpu().numpy(), [c.id for c in classes if c.road or c.movable])
-    valid = mesh.surface.valid.cpu().numpy()
     keep, out = texture_summary(tc.contested.cpu().numpy() & where, g, cfg.texture_min_patch_m2, int(valid.sum()))
     # a vehicle in every view that saw the road is the majority there and invisible to the check: say how much
     # of the road's texture rests on too few views to tell (the shared nuScenes clip's bus, README)
@@ -157,6 +157,6 @@ def check_model_texture(model, mesh: RoadMesh, classes: list[SemanticClass], poo
         warn(f"the BEV texture may hold vehicles or other moving objects over {area:.1f} m² in {out['patch_count']} "
              f"patch(es) (largest {top['area_m2']:.1f} m² at x {top['x_m']:.1f}, y {top['y_m']:.1f} m): views there "
              "disagree with it, from a vehicle, sun glare on the road, or poses or surface off there "
-             "(bev_contested.npy; `--set "
-             "mesh.moving_cutoff=0.15` leaves out a vehicle that a minority of the views saw)")
+             "(bev_contested.npy; `--set mesh.moving_cutoff=0.15` leaves out a vehicle that a minority of the "
+             "views saw)")
     return torch.from_numpy(keep), out
