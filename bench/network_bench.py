@@ -11,10 +11,11 @@ its own.
 Reported per network: wall seconds of the batch (serial: the drives one by one in one process, the same
 task function with every thread pool at one thread, as on a worker; serial-all-threads: the same with the
 process's default threads, what one drive after another on both cores gives; dask: including the
-cluster's start and close), ``process_s`` (the whole process: imports and exit too, what a user waits),
-speedup (serial / dask, of both, and serial-all-threads / dask), peak RSS per worker
-process (MiB, from the tasks' ``getrusage``), register build time, and the machine's load (``uptime``)
-before and after, since the 2 cores are shared.
+cluster's start and close, workers forked from a preloaded forkserver as `pavemap batch` starts them, and
+dask-2-workers-spawn: workers spawned as fresh interpreters, dask's default), ``process_s`` (the whole
+process: imports and exit too, what a user waits), speedup (serial / dask, of both, and serial-all-threads
+/ dask), peak RSS per worker process (MiB, from the tasks' ``getrusage``), register build time, and the
+machine's load (``uptime``) before and after, since the 2 cores are shared.
 
     nice -n 10 .venv/bin/python bench/network_bench.py [--config default|light] [--sizes 2,4,8,long]
         [--data /tmp/pavemap-network-bench]
@@ -78,7 +79,8 @@ def _one(mode: str, manifest: Path, net: Path) -> dict:
     t = time.perf_counter()
     serial = mode.startswith("serial")
     s = run_batch(manifest, net, scheduler="serial" if serial else None, workers=None if serial else 2,
-                  echo=lambda _: None, threads=0 if mode == "serial-all-threads" else 1)
+                  echo=lambda _: None, threads=0 if mode == "serial-all-threads" else 1,
+                  worker_start="spawn" if mode.endswith("-spawn") else "forkserver")
     wall = time.perf_counter() - t
     peak: dict[str, float] = {}
     for e in s["drives"]:
@@ -130,7 +132,7 @@ def main() -> None:
             doc, row = {"config": "kitti", "set": base, "drives": drives[:int(n)]}, {"drives": int(n)}
         manifest.write_text(json.dumps(doc))  # JSON is YAML
         row["load_before"] = _load()
-        for mode in ("serial", "dask-2-workers", "serial-all-threads"):
+        for mode in ("serial", "dask-2-workers", "serial-all-threads", "dask-2-workers-spawn"):
             net = a.data / f"net-{n}-{mode}"
             shutil.rmtree(net, ignore_errors=True)  # the bench's own folder: every drive is run afresh
             t = time.perf_counter()
@@ -144,6 +146,7 @@ def main() -> None:
         row["speedup"] = round(row["serial"]["wall_s"] / row["dask-2-workers"]["wall_s"], 2)
         row["speedup_process"] = round(row["serial"]["process_s"] / row["dask-2-workers"]["process_s"], 2)
         row["speedup_vs_all_threads"] = round(row["serial-all-threads"]["wall_s"] / row["dask-2-workers"]["wall_s"], 2)
+        row["speedup_spawned_workers"] = round(row["serial"]["wall_s"] / row["dask-2-workers-spawn"]["wall_s"], 2)
         row["load_after"] = _load()
         rows.append(row)
     write_results(results, {**machine_entry(), "commit": commit, "config": a.config, "set": base,

@@ -29,6 +29,7 @@ from pavemap.export.gis import read_defect_layer
 from pavemap.network.batch import read_network, run_batch, run_drive
 from pavemap.network.manifest import load_manifest
 from pavemap.network.register import build_register, read_register
+from pavemap.network.workers import forkserver_available
 
 # A light mesh is enough: with footprint association the defect areas follow the boxes, whose size follows
 # the defect; half-resolution images keep that measurement within ~1.2x between drives (quarter: ~2.5x).
@@ -106,6 +107,7 @@ def test_dask_with_a_killed_worker_gives_the_serial_result(serial, on_dask):
     entry = next(e for e in s_dask["drives"] if e["name"] == "jan-van2")
     assert entry["status"] == "done" and not entry["worker"].endswith(f":{marker.read_text()}")  # a fresh worker
     assert s_dask["workers"] == 2 and any(x.startswith("dashboard: ") for x in lines)
+    assert s_dask["worker_start"] == ("forkserver" if forkserver_available() else "spawn")
     for name, *_ in DRIVES:
         a, b = net_s / "drives" / name, net_d / "drives" / name
         assert _records(a) == _records(b), name
@@ -310,6 +312,27 @@ def test_drive_without_geo_origin_is_processed_but_refused_for_the_register(tiny
     from test_gis_outputs import assert_no_wgs84_layer
 
     assert {"survey.gpkg", "defect_map.tif"} <= set(assert_no_wgs84_layer(tmp_path / "net"))
+
+
+@pytest.mark.skipif(not forkserver_available(), reason="no forkserver on this platform")
+def test_forkserver_workers_start_with_a_drives_imports_done_and_spawned_ones_without():
+    from pavemap.network.batch import cluster
+
+    def _loaded() -> list[str]:  # nested: shipped by value, so unpickling it imports no test module
+        import sys
+
+        return sorted(m for m in ("torch", "cv2", "pavemap.pipeline", "pavemap.mesh.train") if m in sys.modules)
+
+    got = {}
+    for start in ("forkserver", "spawn"):
+        with cluster(None, 1, "2GB", 0, lambda _: None, worker_start=start) as client:
+            got[start] = list(client.run(_loaded).values())  # type: ignore[attr-defined]
+    assert got == {"forkserver": [["cv2", "pavemap.mesh.train", "pavemap.pipeline", "torch"]], "spawn": [[]]}
+
+
+def test_unknown_worker_start_is_one_clear_error(world):
+    with pytest.raises(PavemapError, match="--worker-start must be one of forkserver, spawn"):
+        run_batch(world[1], world[0] / "net_bad_start", worker_start="thread", echo=lambda _: None)
 
 
 @pytest.mark.parametrize("command", ["batch", "register"])

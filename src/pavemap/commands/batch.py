@@ -25,12 +25,19 @@ def register(app: typer.Typer) -> None:
                                     "when its worker dies)."),
         no_register: bool = typer.Option(False, "--no-register", help="Process the drives, do not build the "
                                          "register."),
+        worker_start: str = typer.Option("forkserver", "--worker-start", help="How LocalCluster workers start: "
+                                         "forkserver (forked from one interpreter that has imported what a "
+                                         "drive needs; spawn where the platform has none) or spawn."),
     ) -> None:
         """Run many drives in parallel (drives already done are not redone), then build the defect register."""
+        if scheduler is None and worker_start == "forkserver":
+            from pavemap.network.workers import start_worker_forkserver
+
+            start_worker_forkserver()  # imports in the background while the rest of pavemap loads
         from pavemap.network.batch import run_batch
 
         s = run_batch(manifest, out, scheduler=scheduler, workers=workers, memory_limit=memory_limit,
-                      retries=retries, register=not no_register, echo=typer.echo)
+                      retries=retries, register=not no_register, echo=typer.echo, worker_start=worker_start)
         done = sum(e["status"] == "done" for e in s["drives"])
         typer.echo(f"{done} of {len(s['drives'])} drives done in {s.get('batch_seconds', 0):.1f} s; "
                    f"status {out / 'network.json'}, page {out / 'network.html'}")

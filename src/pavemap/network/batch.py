@@ -187,9 +187,13 @@ def is_current(seq: object, cfg: object, run: Path) -> bool:
 
 @contextlib.contextmanager
 def cluster(scheduler: str | None, workers: int | None, memory_limit: str, retries: int,
-            echo: Echo) -> Iterator[object]:
+            echo: Echo, worker_start: str = "forkserver") -> Iterator[object]:
     """A dask Client: on a new LocalCluster (``scheduler`` None: ``workers`` processes, one thread each,
-    ``memory_limit`` each) or on the scheduler at ``scheduler`` (``tcp://HOST:8786``)."""
+    ``memory_limit`` each, started by ``worker_start``: :mod:`pavemap.network.workers`) or on the scheduler
+    at ``scheduler`` (``tcp://HOST:8786``)."""
+    from pavemap.network.workers import resolve_worker_start
+
+    start = resolve_worker_start(worker_start) if not scheduler else "spawn"
     import logging
 
     import dask
@@ -204,7 +208,8 @@ def cluster(scheduler: str | None, workers: int | None, memory_limit: str, retri
                           "distributed.worker.profile.enabled": False,
                           "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1,
                                                                   "OPENBLAS_NUM_THREADS": 1},
-                          "distributed.worker.daemon": False}):
+                          "distributed.worker.daemon": False,
+                          "distributed.worker.multiprocessing-method": start}):
         if scheduler:
             try:
                 client = Client(scheduler, timeout="20s")
@@ -314,19 +319,24 @@ def _write_status(net: Path, manifest: Manifest, entries: list[dict], extra: dic
 def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, scheduler: str | None = None,
               workers: int | None = None, memory_limit: str = "auto", retries: int = DEFAULT_RETRIES,
               register: bool = True, task_fn: Callable[[dict], dict] = run_drive,
-              echo: Echo = print, threads: int = 1) -> dict:
+              echo: Echo = print, threads: int = 1, worker_start: str = "forkserver") -> dict:
     """Run every drive of the manifest into ``out/drives/<name>``, then build the register and the page.
 
     ``scheduler``: None for a LocalCluster of ``workers`` processes (default: the cores), ``"serial"``
     for one drive after another in this process, or a dask scheduler address (``tcp://HOST:8786``).
     ``threads``: thread pools per task (1: one core each, what a worker has; 0: the process's defaults,
-    e.g. to run the drives one by one on all cores). Returns the status written to ``network.json`` (plus
+    e.g. to run the drives one by one on all cores). ``worker_start``: how a LocalCluster starts its
+    workers (:mod:`pavemap.network.workers`: forkserver, or spawn). Returns the status written to ``network.json`` (plus
     ``failed``: the names of failed drives).
     """
     from pavemap.io.owned import claim
 
     if retries < 0:
         raise PavemapError(f"--retries must be >= 0, got {retries}")
+    if scheduler is None:  # the workers' interpreter imports while the manifest is read and the scheduler starts
+        from pavemap.network.workers import resolve_worker_start
+
+        worker_start = resolve_worker_start(worker_start)
     manifest = load_manifest(manifest_path)
     net = Path(out).resolve()  # the tasks carry this path to workers that may run elsewhere
     folder = claim(net, "network", False, inputs=[d.path for d in manifest.drives],
@@ -340,7 +350,7 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
         task.update(segment_tasks=scheduler != "serial", retries=retries)
     by_name = {e["name"]: e for e in entries}
     mode = "serial" if scheduler == "serial" else (scheduler or "LocalCluster")
-    extra: dict = {"scheduler": mode}
+    extra: dict = {"scheduler": mode, **({"worker_start": worker_start} if scheduler is None else {})}
     for e in entries:
         if e.get("reused"):
             echo(f"{e['name']}: done before, not redone")
@@ -370,7 +380,7 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
     if tasks and scheduler == "serial":
         _run_serial(tasks, task_fn, on_done)
     elif tasks:
-        with cluster(scheduler, workers, memory_limit, retries, echo) as client:
+        with cluster(scheduler, workers, memory_limit, retries, echo, worker_start) as client:
             extra["dashboard"] = client.dashboard_link  # type: ignore[attr-defined]
             extra["workers"] = len(client.scheduler_info().get("workers", {}))  # type: ignore[attr-defined]
             _submit_all(client, tasks, task_fn, retries, on_done)

@@ -1,0 +1,75 @@
+"""How a LocalCluster's worker processes start: forked from one interpreter that has already imported
+what a drive needs (a multiprocessing *forkserver*), instead of each spawning a fresh interpreter.
+
+Spawned workers each import distributed, torch, OpenCV, scipy, numba, GDAL's bindings and pavemap
+(~2 s of a core each) inside their first task, after the cluster has started them (another ~1.7 s); a
+forkserver does those imports once, while the client reads the manifest and starts the scheduler, and
+every worker (and every replacement for a killed one) is a fork of it that starts warm. Only the
+standard library is imported here, so the CLI can start the server before it imports anything heavy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+from collections.abc import Iterator
+
+WORKER_START_METHODS = ("forkserver", "spawn")
+
+# What a drive task imports (third-party first: they are most of the time); an entry that fails to import
+# is skipped by multiprocessing's forkserver, so a missing optional package costs nothing here.
+WORKER_IMPORTS = (
+    "distributed", "torch", "cv2", "numpy", "scipy.ndimage", "scipy.sparse.linalg", "skimage.morphology",
+    "numba", "matplotlib", "pyproj", "shapely", "geopandas", "pyogrio", "rasterio", "trimesh",
+    "pavemap.pipeline", "pavemap.mesh.train", "pavemap.fuse.core", "pavemap.maintain", "pavemap.export.report",
+    "pavemap.network.batch", "pavemap.network.plugins",
+)
+
+# One core per worker: set before the server imports the libraries that read them at load (as dask's
+# pre-spawn environ does for spawned workers); PYTHONHASHSEED as dask fixes it for its workers.
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+              "PYTHONHASHSEED": "6640"}
+
+
+def forkserver_available() -> bool:
+    return "forkserver" in multiprocessing.get_all_start_methods()
+
+
+@contextlib.contextmanager
+def _environ(values: dict[str, str]) -> Iterator[None]:
+    """``values`` in os.environ (an existing value is kept), restored on exit."""
+    added = {k: v for k, v in values.items() if k not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+def start_worker_forkserver() -> bool:
+    """Start this process's forkserver with :data:`WORKER_IMPORTS` preloaded, if the platform has one
+    (Linux: yes; macOS and Windows: spawn, False). Returns at once: the server imports in the background,
+    and the first fork waits for it. Idempotent: a server already running is kept as it is."""
+    if not forkserver_available():
+        return False
+    from multiprocessing import forkserver
+
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(list(WORKER_IMPORTS))
+    with _environ(WORKER_ENV):
+        forkserver.ensure_running()
+    return True
+
+
+def resolve_worker_start(method: str) -> str:
+    """The start method a LocalCluster will use: ``method`` (one of :data:`WORKER_START_METHODS`), with
+    forkserver falling back to spawn where the platform has none."""
+    if method not in WORKER_START_METHODS:
+        from pavemap.errors import PavemapError
+
+        raise PavemapError(f"--worker-start must be one of {', '.join(WORKER_START_METHODS)}, got {method!r}")
+    if method == "forkserver" and not start_worker_forkserver():
+        return "spawn"
+    return method
