@@ -21,9 +21,11 @@ WORKER_START_METHODS = ("forkserver", "spawn")
 # is skipped by multiprocessing's forkserver, so a missing optional package costs nothing here.
 WORKER_IMPORTS = (
     "distributed", "torch", "cv2", "numpy", "scipy.ndimage", "scipy.sparse.linalg", "skimage.morphology",
-    "numba", "matplotlib", "pyproj", "shapely", "geopandas", "pyogrio", "rasterio", "trimesh",
-    "pavemap.pipeline", "pavemap.mesh.train", "pavemap.fuse.core", "pavemap.maintain", "pavemap.export.report",
-    "pavemap.network.batch", "pavemap.network.plugins",
+    "numba", "matplotlib", "pyproj", "shapely", "geopandas", "pyogrio", "rasterio", "trimesh", "PIL.Image",
+    "threadpoolctl", "pavemap.pipeline", "pavemap.mesh.train", "pavemap.mesh.tiles", "pavemap.mesh.texture_check",
+    "pavemap.detect.paint", "pavemap.synth", "pavemap.fuse.core", "pavemap.maintain", "pavemap.maintain.measure",
+    "pavemap.evaluate.gt", "pavemap.export.report", "pavemap.export.gis", "pavemap.export.evidence",
+    "pavemap.export.kml", "pavemap.geo.coverage", "pavemap.network.batch", "pavemap.network.plugins",
 )
 
 # One core per worker: set before the server imports the libraries that read them at load (as dask's
