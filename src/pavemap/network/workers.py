@@ -26,6 +26,7 @@ WORKER_IMPORTS = (
     "pavemap.detect.paint", "pavemap.synth", "pavemap.fuse.core", "pavemap.maintain", "pavemap.maintain.measure",
     "pavemap.evaluate.gt", "pavemap.export.report", "pavemap.export.gis", "pavemap.export.evidence",
     "pavemap.export.kml", "pavemap.geo.coverage", "pavemap.network.batch", "pavemap.network.plugins",
+    "pavemap.network.forkserver_ready",  # last: collects and freezes what the others left
 )
 
 # One core per worker: set before the server imports the libraries that read them at load (as dask's
