@@ -283,3 +283,37 @@ def test_corners_in_the_mask_rows_are_the_full_images(drive):
         assert np.array_equal(np.sort(got.view("f8,f8"), axis=0), np.sort(full.reshape(-1, 2).astype(np.float64)
                                                                           .view("f8,f8"), axis=0))
     assert _corners(vd.grey, np.zeros_like(vd.mask), 150, cfg) is None
+
+
+def test_a_point_the_other_views_contradict_is_dropped_as_moving(drive):
+    """The static road matched a -> b scores in a third view c at the depth found; the same corners against a
+    c whose content moved (25 px down, 40 px across, as a vehicle's flank moves between frames) are contradicted."""
+    from pavemap.mesh.ground_points import _corners, _load
+    from pavemap.mesh.ground_sweep import Patches, ViewData, contradicted, sweep_match
+
+    seq = drive[0]
+    cfg = GroundConfig()
+    luts = (seq.class_lut("ground") & ~seq.class_lut("movable"), seq.class_lut("road"))
+    vds = []
+    for pos, f in enumerate(seq.frames[4:7]):
+        v = f.views["CAM_FRONT"]
+        vd = ViewData((f.index, "CAM_FRONT"), pos, seq.cameras["CAM_FRONT"].scaled(cfg.scale), v.T_world_cam)
+        _load(seq, vd, v, cfg, *luts)
+        vds.append(vd)
+    a, b, c = vds
+    corners = _corners(a.grey, a.mask, cfg.max_corners, cfg)
+    patches = Patches(a, corners, cfg)
+    idx, _, t = sweep_match(a, b, corners, cfg, np.full(len(corners), np.nan), patches)
+    tau = np.full(len(corners), np.nan)
+    tau[idx] = t
+    assert len(idx) >= 50
+    none = np.zeros((len(corners), 1), bool)
+    static = contradicted(a, [c], corners, tau, none, cfg, patches)
+    moved_c = copy.copy(c)
+    moved_c.img = np.roll(c.img, (25, 40), axis=(0, 1))
+    moved = contradicted(a, [moved_c], corners, tau, none, cfg, patches)
+    assert static[idx].mean() <= 0.1, static[idx].mean()
+    assert moved[idx].mean() >= 0.6, moved[idx].mean()
+    # a view that matched the corner does not count against it, and a corner no view sees is kept
+    assert not contradicted(a, [moved_c], corners, tau, np.ones((len(corners), 1), bool), cfg, patches).any()
+    assert not contradicted(a, [], corners, tau, np.zeros((len(corners), 0), bool), cfg, patches).any()

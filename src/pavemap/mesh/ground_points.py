@@ -36,7 +36,7 @@ from pavemap.geometry.triangulate import (
 )
 from pavemap.io.egomask import ego_mask_at
 from pavemap.io.sequence import load_rgb, load_semantics
-from pavemap.mesh.ground_sweep import Z_UP, Patches, ViewData, sweep_match
+from pavemap.mesh.ground_sweep import Z_UP, Patches, ViewData, contradicted, sweep_match
 from pavemap.mesh.init_surface import travel_direction
 from pavemap.types import Camera, Sequence, View
 
@@ -70,6 +70,10 @@ class GroundConfig:
     min_angle_deg: float = 1.0
     min_views: int = 2
     neighbour_m: float = 0.15  # drop points this far off the robust surface of their neighbours
+    # a point matched into one partner only is checked in the reference's other partners at the depth found:
+    # where every one of them that sees the spot scores below this NCC, it is dropped (a moving vehicle's
+    # flank matches one neighbouring frame, not the next; the static road still scores there). 0: off
+    static_ncc: float = 0.5
     # the far pass: every ``far_every``-th view matches corners between 0.8 x max_range and far_range into the
     # first later view of its camera ``far_baseline_m`` away, so the road ahead of a drive's end is observed
     far_range: float = 60.0  # m (0: no far pass)
@@ -224,6 +228,7 @@ class _Tracks:
     obs: dict[str, list[np.ndarray]] = field(default_factory=lambda: {"track": [], "view": [], "uv": []})
     road: list[np.ndarray] = field(default_factory=list)
     far: list[np.ndarray] = field(default_factory=list)  # the far pass's track ids
+    moved: list[np.ndarray] = field(default_factory=list)  # track ids the other partners contradict
     n: int = 0
 
     def add(self, track: np.ndarray, view: int, uv: np.ndarray) -> None:
@@ -256,12 +261,25 @@ def _match_corners(vds: list[ViewData], i: int, mask: np.ndarray, n_corners: int
     acc.add(tid, i, corners)
     tau = np.full(len(corners), np.nan)  # log depth found so far (narrows later partners' search)
     patches = Patches(a, corners, cfg, normal)
-    for j in partners:
+    matched = np.zeros((len(corners), len(partners)), bool)
+    for k, j in enumerate(partners):
         idx, uv_b, t = sweep_match(a, vds[j], corners, cfg, tau, patches)
         tau[idx] = np.where(np.isfinite(tau[idx]), tau[idx], t)
+        matched[idx, k] = True
         acc.stats["pairs"] += 1
         acc.stats["matches"] += len(idx)
         acc.add(tid[idx], j, uv_b)
+    if cfg.static_ncc > 0:  # the views of a's camera around it, partners or not, that are still loaded
+        near = [j for j in range(len(vds)) if j != i and vds[j].img is not None and vds[j].key[1] == a.key[1]
+                and abs(vds[j].pos - a.pos) <= cfg.max_gap]
+        seen = np.zeros((len(corners), len(near)), bool)
+        for k, j in enumerate(partners):
+            if j in near:
+                seen[:, near.index(j)] = matched[:, k]
+        once = matched.sum(1) == 1
+        moved = once & contradicted(a, [vds[j] for j in near], corners, tau, seen, cfg, patches)
+        acc.moved.append(tid[moved])
+        acc.stats["moved"] = acc.stats.get("moved", 0) + int(moved.sum())
     acc.n += len(corners)
 
 
@@ -325,7 +343,9 @@ def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: Groun
             _match_corners(vds, i, a.far_mask, cfg.far_corners, partners, cfg, acc, far.normal[i])
             acc.far.append(np.arange(first, acc.n))
             acc.stats["far_pairs"] += 1
-        a.grey = a.img = a.mask = a.label_ok = a.road = a.far_mask = None
+        a.grey = a.mask = a.label_ok = a.road = a.far_mask = None
+        if i >= cfg.max_gap:  # kept until no later reference checks its points in it
+            vds[i - cfg.max_gap].img = None
     return acc
 
 
@@ -363,6 +383,8 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
     tri = triangulate_tracks(Kall[vid], Tall[vid], uv, track, n_tracks, max_err_px=cfg.max_err_px,
                              min_angle_deg=cfg.min_angle_deg, min_views=cfg.min_views)
     ok = tri.ok.copy()
+    if acc.moved:
+        ok[np.concatenate(acc.moved)] = False
     # a ground point lies below every camera that sees it (catches mismatches on walls and trees)
     np.minimum.at(cam_z := np.full(n_tracks, np.inf), track, Tall[vid, 2, 3])
     ok &= tri.points[:, 2] < cam_z - 0.3

@@ -161,3 +161,22 @@ def sweep_match(a: ViewData, b: ViewData, corners: np.ndarray, cfg: GroundConfig
         on = b.label_ok[ui[:, 1], ui[:, 0]]
         rows, uv = rows[on], uv[on]
     return rows, uv, t_hat[rows]
+
+
+def contradicted(a: ViewData, others: list[ViewData], corners: np.ndarray, tau: np.ndarray, matched: np.ndarray,
+                 cfg: GroundConfig, patches: Patches) -> np.ndarray:
+    """(N,) bool: a's corners (N, 2) whose patch, put at the log depth ``tau`` (N,) found for it, scores below
+    ``cfg.static_ncc`` (best within +-1 px along the epipolar line) in every one of the ``others`` views that
+    sees it and did not match it (``matched`` (N, K) bool). The static road scores there about as it did where
+    it matched; a moving vehicle's flank, matched between two neighbouring frames, does not."""
+    rows_all = np.flatnonzero(np.isfinite(tau))
+    best = np.full(len(corners), -np.inf)  # the best NCC over the views that see it (-inf: none does)
+    for k, b in enumerate(others):
+        rows = rows_all[~matched[rows_all, k]]
+        if len(rows) == 0:
+            continue
+        sw = Sweep(a, b, corners.astype(np.float64), cfg, patches)
+        px = np.where(sw.g[rows] > 1e-3, 1.0 / np.maximum(sw.g[rows], 1e-3), 0.0)  # no parallax: the depth alone
+        ncc = sw.score(tau[rows, None] + np.array([-1.0, 0.0, 1.0])[None] * px[:, None], rows, sparse=False)
+        best[rows] = np.maximum(best[rows], np.where(ncc.min(1) > -1, ncc.max(1), -np.inf))  # -1: leaves b
+    return np.isfinite(best) & (best < cfg.static_ncc)
