@@ -317,3 +317,30 @@ def test_a_point_the_other_views_contradict_is_dropped_as_moving(drive):
     # a view that matched the corner does not count against it, and a corner no view sees is kept
     assert not contradicted(a, [moved_c], corners, tau, np.ones((len(corners), 1), bool), cfg, patches).any()
     assert not contradicted(a, [], corners, tau, np.zeros((len(corners), 0), bool), cfg, patches).any()
+
+
+def test_moved_points_are_dropped_and_checked_in_views_max_gap_frames_back_on_a_rig(drive, monkeypatch):
+    """The check's verdict reaches the points (a strict threshold drops some, 0 none), and on a two-camera rig
+    (the front camera twice) a reference's camera is still loaded max_gap frames back."""
+    import pavemap.mesh.ground_points as gpm
+
+    seq = copy.deepcopy(drive[0])
+    seq.frames = seq.frames[:8]
+    off = GroundConfig(static_ncc=0.0)
+    strict = find_ground_points(seq, GroundConfig(static_ncc=0.99))
+    assert strict.stats["moved"] > 0 and len(strict) < len(find_ground_points(seq, off))
+    rig = copy.deepcopy(seq)
+    rig.cameras["CAM_TWIN"] = rig.cameras["CAM_FRONT"]
+    for f in rig.frames:
+        f.views["CAM_TWIN"] = copy.deepcopy(f.views["CAM_FRONT"])
+    backs = []
+    real = gpm.moved_points
+
+    def spy(vds, i, *args):
+        a = vds[i]
+        backs.extend(a.pos - b.pos for b in vds if b.img is not None and b.key[1] == a.key[1] and b.pos <= a.pos)
+        return real(vds, i, *args)
+
+    monkeypatch.setattr(gpm, "moved_points", spy)
+    find_ground_points(rig, GroundConfig())
+    assert max(backs) == GroundConfig().max_gap

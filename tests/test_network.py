@@ -315,19 +315,27 @@ def test_drive_without_geo_origin_is_processed_but_refused_for_the_register(tiny
 
 
 @pytest.mark.skipif(not forkserver_available(), reason="no forkserver on this platform")
-def test_forkserver_workers_start_with_a_drives_imports_done_and_spawned_ones_without():
+def test_forkserver_workers_start_with_a_drives_imports_done_and_spawned_ones_without(monkeypatch):
+    """Forked workers have what a drive imports before any task, and pavemap's variables set after the server
+    started (it may be running since an earlier test) reach them as they do spawned ones."""
     from pavemap.network.batch import cluster
+    from pavemap.network.workers import start_worker_forkserver
 
-    def _loaded() -> list[str]:  # nested: shipped by value, so unpickling it imports no test module
+    def _loaded() -> tuple[list[str], str | None]:  # nested: shipped by value, unpickling imports no test module
+        import os
         import sys
 
-        return sorted(m for m in ("torch", "cv2", "pavemap.pipeline", "pavemap.mesh.train") if m in sys.modules)
+        mods = sorted(m for m in ("torch", "cv2", "pavemap.pipeline", "pavemap.mesh.train") if m in sys.modules)
+        return mods, os.environ.get("PAVEMAP_TEST_FORWARDED")
 
+    start_worker_forkserver()
+    monkeypatch.setenv("PAVEMAP_TEST_FORWARDED", "yes")
     got = {}
     for start in ("forkserver", "spawn"):
         with cluster(None, 1, "2GB", 0, lambda _: None, worker_start=start) as client:
             got[start] = list(client.run(_loaded).values())  # type: ignore[attr-defined]
-    assert got == {"forkserver": [["cv2", "pavemap.mesh.train", "pavemap.pipeline", "torch"]], "spawn": [[]]}
+    assert got == {"forkserver": [(["cv2", "pavemap.mesh.train", "pavemap.pipeline", "torch"], "yes")],
+                   "spawn": [([], "yes")]}
 
 
 def test_unknown_worker_start_is_one_clear_error(world):

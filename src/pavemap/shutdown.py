@@ -15,6 +15,7 @@ import gc
 def prepare_quick_exit() -> None:
     """Collect what is garbage now (its finalisers run, as in the exit's own collections), then freeze the rest
     so that the exit does not walk it again. What is still referenced is freed as the interpreter clears its
-    modules, as without this (an open file is flushed then). Call it only when the process's work is done."""
+    modules, as without this (an open file is flushed then). Call it when the process's work is done, or when
+    what it has built stays for good (the workers' forkserver after its imports: its forks share it)."""
     gc.collect()
     gc.freeze()

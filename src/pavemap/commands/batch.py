@@ -30,10 +30,12 @@ def register(app: typer.Typer) -> None:
                                          "drive needs; spawn where the platform has none) or spawn."),
     ) -> None:
         """Run many drives in parallel (drives already done are not redone), then build the defect register."""
-        if scheduler is None and worker_start == "forkserver":
+        if scheduler is None and worker_start == "forkserver" and not (out / "network.json").exists():
             from pavemap.network.workers import start_worker_forkserver
 
-            start_worker_forkserver()  # imports in the background while the rest of pavemap loads
+            # a new network: the workers' server imports while the rest of pavemap loads (a resumed one may
+            # have nothing left to run, and run_batch starts it only when a drive is)
+            start_worker_forkserver()
         from pavemap.network.batch import run_batch
 
         s = run_batch(manifest, out, scheduler=scheduler, workers=workers, memory_limit=memory_limit,

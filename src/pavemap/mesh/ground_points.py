@@ -36,7 +36,7 @@ from pavemap.geometry.triangulate import (
 )
 from pavemap.io.egomask import ego_mask_at
 from pavemap.io.sequence import load_rgb, load_semantics
-from pavemap.mesh.ground_sweep import Z_UP, Patches, ViewData, contradicted, sweep_match
+from pavemap.mesh.ground_sweep import Z_UP, Patches, ViewData, moved_points, sweep_match
 from pavemap.mesh.init_surface import travel_direction
 from pavemap.types import Camera, Sequence, View
 
@@ -70,9 +70,9 @@ class GroundConfig:
     min_angle_deg: float = 1.0
     min_views: int = 2
     neighbour_m: float = 0.15  # drop points this far off the robust surface of their neighbours
-    # a point matched into one partner only is checked in the reference's other partners at the depth found:
-    # where every one of them that sees the spot scores below this NCC, it is dropped (a moving vehicle's
-    # flank matches one neighbouring frame, not the next; the static road still scores there). 0: off
+    # a point matched into one partner only is checked at the depth found in the other views of its camera
+    # within max_gap frames: where every one that sees the spot on its ground scores below this NCC, it is
+    # dropped (a moving vehicle's flank matches one neighbouring frame, not the next; the road still scores)
     static_ncc: float = 0.5
     # the far pass: every ``far_every``-th view matches corners between 0.8 x max_range and far_range into the
     # first later view of its camera ``far_baseline_m`` away, so the road ahead of a drive's end is observed
@@ -228,7 +228,7 @@ class _Tracks:
     obs: dict[str, list[np.ndarray]] = field(default_factory=lambda: {"track": [], "view": [], "uv": []})
     road: list[np.ndarray] = field(default_factory=list)
     far: list[np.ndarray] = field(default_factory=list)  # the far pass's track ids
-    moved: list[np.ndarray] = field(default_factory=list)  # track ids the other partners contradict
+    moved: list[np.ndarray] = field(default_factory=list)  # track ids the other views contradict
     n: int = 0
 
     def add(self, track: np.ndarray, view: int, uv: np.ndarray) -> None:
@@ -248,9 +248,10 @@ def _corners(grey: np.ndarray, mask: np.ndarray, n: int, cfg: GroundConfig, pad:
 
 
 def _match_corners(vds: list[ViewData], i: int, mask: np.ndarray, n_corners: int, partners: list[int],
-                   cfg: GroundConfig, acc: _Tracks, normal: np.ndarray = Z_UP) -> None:
+                   cfg: GroundConfig, acc: _Tracks, normal: np.ndarray = Z_UP, check: bool = True) -> None:
     """View i's corners within ``mask`` (H, W) bool matched into ``partners``, added to ``acc``; the sweep's
-    planes have the world ``normal`` (3,)."""
+    planes have the world ``normal`` (3,). ``check``: single matches the other views contradict go to
+    ``acc.moved`` (the far pass keeps only points seen thrice anyway)."""
     a = vds[i]
     corners = _corners(a.grey, mask, n_corners, cfg)
     if corners is None:
@@ -269,15 +270,8 @@ def _match_corners(vds: list[ViewData], i: int, mask: np.ndarray, n_corners: int
         acc.stats["pairs"] += 1
         acc.stats["matches"] += len(idx)
         acc.add(tid[idx], j, uv_b)
-    if cfg.static_ncc > 0:  # the views of a's camera around it, partners or not, that are still loaded
-        near = [j for j in range(len(vds)) if j != i and vds[j].img is not None and vds[j].key[1] == a.key[1]
-                and abs(vds[j].pos - a.pos) <= cfg.max_gap]
-        seen = np.zeros((len(corners), len(near)), bool)
-        for k, j in enumerate(partners):
-            if j in near:
-                seen[:, near.index(j)] = matched[:, k]
-        once = matched.sum(1) == 1
-        moved = once & contradicted(a, [vds[j] for j in near], corners, tau, seen, cfg, patches)
+    if check and cfg.static_ncc > 0:
+        moved = moved_points(vds, i, corners, tau, matched, partners, cfg, patches)
         acc.moved.append(tid[moved])
         acc.stats["moved"] = acc.stats.get("moved", 0) + int(moved.sum())
     acc.n += len(corners)
@@ -329,7 +323,7 @@ def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: Groun
     reference needs them."""
     luts = (seq.class_lut("ground") & ~seq.class_lut("movable"), seq.class_lut("road"))
     acc = _Tracks({"views": len(vds), "pairs": 0, "matches": 0, "far_pairs": 0})
-    loaded = 0
+    loaded = dropped = 0
     for i, a in enumerate(vds):
         while loaded < len(vds) and (
                 vds[loaded].pos - a.pos <= cfg.max_gap
@@ -337,15 +331,18 @@ def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: Groun
                     and np.linalg.norm(vds[loaded - 1].T[:3, 3] - a.T[:3, 3]) < cfg.far_baseline_m)):
             _load(seq, vds[loaded], views[loaded], cfg, *luts, far=bool(far.ref[loaded]), on_rgb=on_rgb)
             loaded += 1
+        while vds[dropped].pos < a.pos - cfg.max_gap:  # an image is kept while a later reference checks in it
+            vds[dropped].img = None
+            dropped += 1
         _match_corners(vds, i, a.mask, cfg.max_corners, _partners(vds, i, cfg), cfg, acc)
         if a.far_mask is not None and (partners := _far_partners(vds, i, cfg)):
             first = acc.n
-            _match_corners(vds, i, a.far_mask, cfg.far_corners, partners, cfg, acc, far.normal[i])
+            _match_corners(vds, i, a.far_mask, cfg.far_corners, partners, cfg, acc, far.normal[i], check=False)
             acc.far.append(np.arange(first, acc.n))
             acc.stats["far_pairs"] += 1
-        a.grey = a.mask = a.label_ok = a.road = a.far_mask = None
-        if i >= cfg.max_gap:  # kept until no later reference checks its points in it
-            vds[i - cfg.max_gap].img = None
+        a.grey = a.label_ok = a.road = a.far_mask = a.mask = None
+    for vd in vds[dropped:]:
+        vd.img = None
     return acc
 
 

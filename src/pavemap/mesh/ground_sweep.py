@@ -163,12 +163,30 @@ def sweep_match(a: ViewData, b: ViewData, corners: np.ndarray, cfg: GroundConfig
     return rows, uv, t_hat[rows]
 
 
+def moved_points(vds: list[ViewData], i: int, corners: np.ndarray, tau: np.ndarray, matched: np.ndarray,
+                 partners: list[int], cfg: GroundConfig, patches: Patches) -> np.ndarray:
+    """(N,) bool: view i's corners (N, 2) matched into exactly one of ``partners`` (``matched`` (N, K) bool, at
+    log depth ``tau`` (N,)) that every other loaded view of i's camera within ``cfg.max_gap`` frames
+    contradicts (:func:`contradicted`)."""
+    a = vds[i]
+    near = [j for j, b in enumerate(vds) if j != i and b.img is not None
+            and b.key[1] == a.key[1] and abs(b.pos - a.pos) <= cfg.max_gap]
+    seen = np.zeros((len(corners), len(near)), bool)
+    for k, j in enumerate(partners):
+        if j in near:
+            seen[:, near.index(j)] = matched[:, k]
+    once = matched.sum(1) == 1
+    return once & contradicted(a, [vds[j] for j in near], corners, np.where(once, tau, np.nan), seen, cfg, patches)
+
+
 def contradicted(a: ViewData, others: list[ViewData], corners: np.ndarray, tau: np.ndarray, matched: np.ndarray,
                  cfg: GroundConfig, patches: Patches) -> np.ndarray:
-    """(N,) bool: a's corners (N, 2) whose patch, put at the log depth ``tau`` (N,) found for it, scores below
-    ``cfg.static_ncc`` (best within +-1 px along the epipolar line) in every one of the ``others`` views that
-    sees it and did not match it (``matched`` (N, K) bool). The static road scores there about as it did where
-    it matched; a moving vehicle's flank, matched between two neighbouring frames, does not."""
+    """(N,) bool: a's corners (N, 2) whose patch, put at the log depth ``tau`` (N,; NaN: not checked), scores
+    below ``cfg.static_ncc`` (best within +-1 px along the epipolar line) in every one of the ``others`` views
+    that did not match it (``matched`` (N, K) bool) and sees the spot. The static road scores there about as
+    it did where it matched; a moving vehicle's flank, matched between two neighbouring frames, does not. A view
+    whose semantics or ego mask put something else there counts too: leaving those out kept points that were
+    wrong (README, "Points on moving vehicles")."""
     rows_all = np.flatnonzero(np.isfinite(tau))
     best = np.full(len(corners), -np.inf)  # the best NCC over the views that see it (-inf: none does)
     for k, b in enumerate(others):
@@ -176,7 +194,7 @@ def contradicted(a: ViewData, others: list[ViewData], corners: np.ndarray, tau: 
         if len(rows) == 0:
             continue
         sw = Sweep(a, b, corners.astype(np.float64), cfg, patches)
-        px = np.where(sw.g[rows] > 1e-3, 1.0 / np.maximum(sw.g[rows], 1e-3), 0.0)  # no parallax: the depth alone
+        px = np.where(sw.g[rows] > 1.0, 1.0 / np.maximum(sw.g[rows], 1.0), 0.0)  # < 1 px of parallax: depth alone
         ncc = sw.score(tau[rows, None] + np.array([-1.0, 0.0, 1.0])[None] * px[:, None], rows, sparse=False)
         best[rows] = np.maximum(best[rows], np.where(ncc.min(1) > -1, ncc.max(1), -np.inf))  # -1: leaves b
     return np.isfinite(best) & (best < cfg.static_ncc)

@@ -191,9 +191,10 @@ def cluster(scheduler: str | None, workers: int | None, memory_limit: str, retri
     """A dask Client: on a new LocalCluster (``scheduler`` None: ``workers`` processes, one thread each,
     ``memory_limit`` each, started by ``worker_start``: :mod:`pavemap.network.workers`) or on the scheduler
     at ``scheduler`` (``tcp://HOST:8786``)."""
-    from pavemap.network.workers import resolve_worker_start
+    from pavemap.network.workers import resolve_worker_start, worker_environ
 
     start = resolve_worker_start(worker_start) if not scheduler else "spawn"
+    env = worker_environ() if start == "forkserver" else {}
     import logging
 
     import dask
@@ -209,7 +210,8 @@ def cluster(scheduler: str | None, workers: int | None, memory_limit: str, retri
                           "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1,
                                                                   "OPENBLAS_NUM_THREADS": 1},
                           "distributed.worker.daemon": False,
-                          "distributed.worker.multiprocessing-method": start}):
+                          "distributed.worker.multiprocessing-method": start,
+                          "distributed.nanny.environ": env}):
         if scheduler:
             try:
                 client = Client(scheduler, timeout="20s")
@@ -333,10 +335,9 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
 
     if retries < 0:
         raise PavemapError(f"--retries must be >= 0, got {retries}")
-    if scheduler is None:  # the workers' interpreter imports while the manifest is read and the scheduler starts
-        from pavemap.network.workers import resolve_worker_start
+    from pavemap.network.workers import check_worker_start, resolve_worker_start
 
-        worker_start = resolve_worker_start(worker_start)
+    check_worker_start(worker_start)
     manifest = load_manifest(manifest_path)
     net = Path(out).resolve()  # the tasks carry this path to workers that may run elsewhere
     folder = claim(net, "network", False, inputs=[d.path for d in manifest.drives],
@@ -346,6 +347,8 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
     except PavemapError:
         previous = {}
     entries, tasks = _plan(manifest, net, previous, threads)
+    if scheduler is None and tasks:  # the workers' server imports while the status is written, the scheduler starts
+        worker_start = resolve_worker_start(worker_start)
     for task in tasks:  # on a cluster a long drive's segments are tasks of their own
         task.update(segment_tasks=scheduler != "serial", retries=retries)
     by_name = {e["name"]: e for e in entries}

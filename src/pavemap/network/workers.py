@@ -6,6 +6,10 @@ Spawned workers each import distributed, torch, OpenCV, scipy, numba, GDAL's bin
 forkserver does those imports once, while the client reads the manifest and starts the scheduler, and
 every worker (and every replacement for a killed one) is a fork of it that starts warm. Only the
 standard library is imported here, so the CLI can start the server before it imports anything heavy.
+
+A forked worker's environment is the server's, fixed when the server started, plus what
+:func:`worker_environ` forwards as each worker starts (pavemap's and ultralytics' own variables);
+a variable read when a library loads (``OMP_NUM_THREADS``) keeps its value from the server's start.
 """
 
 from __future__ import annotations
@@ -13,12 +17,14 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import sys
 from collections.abc import Iterator
 
 WORKER_START_METHODS = ("forkserver", "spawn")
 
-# What a drive task imports (third-party first: they are most of the time); an entry that fails to import
-# is skipped by multiprocessing's forkserver, so a missing optional package costs nothing here.
+# What a drive task imports (third-party first: they are most of the time). The server imports them through
+# pavemap.network.forkserver_ready, which skips one that fails to import (multiprocessing's own preload stops
+# every worker start on anything but an ImportError).
 WORKER_IMPORTS = (
     "distributed", "torch", "cv2", "numpy", "scipy.ndimage", "scipy.sparse.linalg", "skimage.morphology",
     "numba", "matplotlib", "pyproj", "shapely", "geopandas", "pyogrio", "rasterio", "trimesh", "PIL.Image",
@@ -26,17 +32,19 @@ WORKER_IMPORTS = (
     "pavemap.detect.paint", "pavemap.synth", "pavemap.fuse.core", "pavemap.maintain", "pavemap.maintain.measure",
     "pavemap.evaluate.gt", "pavemap.export.report", "pavemap.export.gis", "pavemap.export.evidence",
     "pavemap.export.kml", "pavemap.geo.coverage", "pavemap.network.batch", "pavemap.network.plugins",
-    "pavemap.network.forkserver_ready",  # last: collects and freezes what the others left
 )
 
 # One core per worker: set before the server imports the libraries that read them at load (as dask's
 # pre-spawn environ does for spawned workers); PYTHONHASHSEED as dask fixes it for its workers.
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
               "PYTHONHASHSEED": "6640"}
+FORWARDED_PREFIXES = ("PAVEMAP_", "YOLO_")
 
 
 def forkserver_available() -> bool:
-    return "forkserver" in multiprocessing.get_all_start_methods()
+    """Whether workers can be forked from a server here: Linux only (macOS lists a forkserver, but forking
+    after Apple's frameworks are loaded is why Python spawns there by default)."""
+    return sys.platform.startswith("linux") and "forkserver" in multiprocessing.get_all_start_methods()
 
 
 @contextlib.contextmanager
@@ -53,26 +61,36 @@ def _environ(values: dict[str, str]) -> Iterator[None]:
 
 def start_worker_forkserver() -> bool:
     """Start this process's forkserver with :data:`WORKER_IMPORTS` preloaded, if the platform has one
-    (Linux: yes; macOS and Windows: spawn, False). Returns at once: the server imports in the background,
-    and the first fork waits for it. Idempotent: a server already running is kept as it is."""
+    (False: it has not). Returns at once: the server imports in the background, and the first fork waits
+    for it. Idempotent: a server already running is kept as it is."""
     if not forkserver_available():
         return False
     from multiprocessing import forkserver
 
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(list(WORKER_IMPORTS))
+    ctx.set_forkserver_preload(["pavemap.network.forkserver_ready"])
     with _environ(WORKER_ENV):
         forkserver.ensure_running()
     return True
 
 
-def resolve_worker_start(method: str) -> str:
-    """The start method a LocalCluster will use: ``method`` (one of :data:`WORKER_START_METHODS`), with
-    forkserver falling back to spawn where the platform has none."""
+def check_worker_start(method: str) -> None:
+    """A clear error for a start method that is not one of :data:`WORKER_START_METHODS`."""
     if method not in WORKER_START_METHODS:
         from pavemap.errors import PavemapError
 
         raise PavemapError(f"--worker-start must be one of {', '.join(WORKER_START_METHODS)}, got {method!r}")
+
+
+def resolve_worker_start(method: str) -> str:
+    """The start method a LocalCluster will use: ``method`` (one of :data:`WORKER_START_METHODS`), with
+    forkserver started here, or spawn where the platform has none."""
+    check_worker_start(method)
     if method == "forkserver" and not start_worker_forkserver():
         return "spawn"
     return method
+
+
+def worker_environ() -> dict[str, str]:
+    """The client's variables that a forked worker gets as it starts (a spawned one inherits them all)."""
+    return {k: v for k, v in os.environ.items() if k.startswith(FORWARDED_PREFIXES)}
