@@ -338,6 +338,8 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
     from pavemap.network.workers import check_worker_start, resolve_worker_start
 
     check_worker_start(worker_start)
+    if scheduler is None and not (Path(out) / NETWORK_FILE).exists():  # a new network: every drive will run, so
+        worker_start = resolve_worker_start(worker_start)  # the workers' server imports while the plan is made
     manifest = load_manifest(manifest_path)
     net = Path(out).resolve()  # the tasks carry this path to workers that may run elsewhere
     folder = claim(net, "network", False, inputs=[d.path for d in manifest.drives],
@@ -347,7 +349,7 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
     except PavemapError:
         previous = {}
     entries, tasks = _plan(manifest, net, previous, threads)
-    if scheduler is None and tasks:  # the workers' server imports while the status is written, the scheduler starts
+    if scheduler is None and tasks:  # a resumed network starts the server only when a drive is left to run
         worker_start = resolve_worker_start(worker_start)
     for task in tasks:  # on a cluster a long drive's segments are tasks of their own
         task.update(segment_tasks=scheduler != "serial", retries=retries)
