@@ -351,3 +351,25 @@ def test_help_renders(command):
 
     r = CliRunner().invoke(app, [command, "--help"])
     assert r.exit_code == 0 and "Usage" in r.output, r.output
+
+
+def test_the_forkservers_preload_skips_a_module_that_fails_in_any_way(tmp_path, monkeypatch):
+    """multiprocessing's own preload stops every worker start on anything but an ImportError: the one module
+    it preloads imports the list itself and goes on past a module that raises."""
+    import gc
+    import importlib
+    import sys
+
+    import pavemap.network.workers as workers
+
+    (tmp_path / "pavemap_test_broken.py").write_text("raise RuntimeError('broken at import')\n")
+    (tmp_path / "pavemap_test_fine.py").write_text("LOADED = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(workers, "WORKER_IMPORTS", ("pavemap_test_broken", "pavemap_test_fine"))
+    monkeypatch.delitem(sys.modules, "pavemap.network.forkserver_ready", raising=False)
+    try:
+        importlib.import_module("pavemap.network.forkserver_ready")
+    finally:
+        gc.unfreeze()  # the module freezes the heap, as the server should; this process is not the server
+        sys.modules.pop("pavemap.network.forkserver_ready", None)
+    assert sys.modules.pop("pavemap_test_fine").LOADED and "pavemap_test_broken" not in sys.modules
