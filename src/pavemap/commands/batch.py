@@ -30,13 +30,7 @@ def register(app: typer.Typer) -> None:
                                          "drive needs; spawn where the platform has none) or spawn."),
     ) -> None:
         """Run many drives in parallel (drives already done are not redone), then build the defect register."""
-        if scheduler is None and worker_start == "forkserver" and not (out / "network.json").exists():
-            from pavemap.network.workers import start_worker_forkserver
-
-            # a new network: the workers' server imports while the rest of pavemap loads (a resumed one may
-            # have nothing left to run, and run_batch starts it only when a drive is)
-            start_worker_forkserver()
-        from pavemap.network.batch import run_batch
+        from pavemap.network.batch import run_batch  # light: run_batch starts the workers' server at its top
 
         s = run_batch(manifest, out, scheduler=scheduler, workers=workers, memory_limit=memory_limit,
                       retries=retries, register=not no_register, echo=typer.echo, worker_start=worker_start)

@@ -169,8 +169,13 @@ def moved_points(vds: list[ViewData], i: int, corners: np.ndarray, tau: np.ndarr
     log depth ``tau`` (N,)) that every other loaded view of i's camera within ``cfg.max_gap`` frames
     contradicts (:func:`contradicted`)."""
     a = vds[i]
-    near = [j for j, b in enumerate(vds) if j != i and b.img is not None
-            and b.key[1] == a.key[1] and abs(b.pos - a.pos) <= cfg.max_gap]
+    near = []  # views are in frame order: only the neighbours within max_gap frames are looked at
+    for step in (-1, 1):
+        j = i + step
+        while 0 <= j < len(vds) and abs(vds[j].pos - a.pos) <= cfg.max_gap:
+            if vds[j].img is not None and vds[j].key[1] == a.key[1]:
+                near.append(j)
+            j += step
     seen = np.zeros((len(corners), len(near)), bool)
     for k, j in enumerate(partners):
         if j in near:

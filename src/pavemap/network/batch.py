@@ -338,12 +338,12 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
     from pavemap.network.workers import check_worker_start, resolve_worker_start
 
     check_worker_start(worker_start)
-    if scheduler is None and not (Path(out) / NETWORK_FILE).exists():  # a new network: every drive will run, so
-        worker_start = resolve_worker_start(worker_start)  # the workers' server imports while the plan is made
     manifest = load_manifest(manifest_path)
     net = Path(out).resolve()  # the tasks carry this path to workers that may run elsewhere
     folder = claim(net, "network", False, inputs=[d.path for d in manifest.drives],
                    info={"manifest": str(manifest.path)}, same=lambda o: o.get("kind") == "network")
+    if scheduler is None and not (net / NETWORK_FILE).exists():  # a new network: every drive will run, so the
+        worker_start = resolve_worker_start(worker_start)  # workers' server imports while the plan is made
     try:
         previous = {e.get("name"): e for e in read_network(net)["drives"]}
     except PavemapError:
