@@ -65,10 +65,6 @@ def speed_check(res, hz: float) -> dict:
             "limit_mps2": checks.max_accel_mps2, "passes": bool(got[0] <= checks.max_accel_mps2)}
 
 
-def per_camera_height(res) -> np.ndarray:
-    return np.array(res.info["checks"]["height_range_m"])
-
-
 def kitti() -> dict:
     root = DATA / "kitti-odometry-sample"
     ims = sorted((root / "sequences/90/image_0").glob("*.png"))
@@ -90,7 +86,8 @@ def kitti() -> dict:
             # the SfM world is metric by the 1.65 m prior; the similarity to the truth says how right that was
             "camera_height_m": round(1.65 * s, 3), "scale_to_truth": round(s, 4),
             "ego_mask": mask_report(mask, "auto").to_dict(), "checks": res.info["checks"],
-            "K_used": res.info["K_refined"], "dense_scale": res.info.get("dense_scale"),
+            "K_used": res.info["K_refined"],
+            "dense_scale": res.info.get("dense_scale"),
             "road_steps": res.info.get("road_steps"), "speed_check": speed_check(res, 10.0),
             "seconds": round(dt, 1), "road_steps_on_true_poses": kitti_true_pose_steps(ims, cam, gt)}
 

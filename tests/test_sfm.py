@@ -116,3 +116,38 @@ def test_fps_must_be_positive(tmp_path):
     for bad in (0, -2.0, float("inf"), float("nan")):  # inf would put every frame at t = 0
         with pytest.raises(PavemapError, match="--fps must be a positive"):
             import_folder(tmp_path / "img", tmp_path / "cameras.json", "sfm", tmp_path / "seq", fps=bad)
+
+
+def _road_under_path(rng: np.random.Generator, n: int = 3000, length: float = 80.0, grade: float = 0.02,
+                     fall: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+    """A road along x with a grade and a cross-fall (z falls to the right, -y: a turn's superelevation), its
+    points (n, 3) 3.5 m to the right of the path to 0.8 m to its left (the camera sees more of one side), 1 cm
+    of noise, and the road's (grade, cross-fall)."""
+    x = rng.uniform(0.0, length, n)
+    y = rng.uniform(-3.5, 0.8, n)
+    z = grade * x + fall * y + rng.normal(0.0, 0.01, n)
+    return np.c_[x, y, z], np.array([grade, fall])
+
+
+def test_camera_heights_follow_the_path_over_a_graded_cambered_road():
+    from pavemap.io.sfm_checks import camera_heights
+
+    rng = np.random.default_rng(4)
+    P, (grade, _) = _road_under_path(rng)
+    x = np.arange(0.0, 81.0, 7.5)  # 2 Hz keyframes
+    C = np.c_[x, np.zeros_like(x), grade * x + 1.5]
+    # a parked car's sill 1.9 m to the right, 0.35 m over the road, on one stretch only; no road past 62 m
+    car = np.c_[rng.uniform(30, 36, 40), rng.uniform(-2.1, -1.8, 40), np.zeros(40)]
+    car[:, 2] = grade * car[:, 0] + 0.08 * car[:, 1] + 0.35
+    P = np.r_[P[P[:, 0] < 62.0], car]
+    h = camera_heights(P, C, np.array([0.0, 0.0, 1.0]))
+    seen = np.isfinite(h)
+    assert seen[:-1].all() and not seen[-1]  # the last camera, 13 m past the last road point: not measured
+    np.testing.assert_allclose(h[seen], 1.5, atol=0.01)
+    # the same road under a path whose scale drifts: the camera climbs 0.3 m over the road along it
+    drift = C.copy()
+    drift[:, 2] += 0.3 * x / x[-1]
+    h2 = camera_heights(P, drift, np.array([0.0, 0.0, 1.0]))
+    # each height averages the path's height over the road ±8 m along it: the drift shows, smoothed that much
+    np.testing.assert_allclose(h2[seen], 1.5 + 0.3 * x[seen] / x[-1], atol=0.03)
+    assert np.ptp(h2[seen]) > 0.2

@@ -5,8 +5,8 @@
 scale, or set it where the road's steps could not. SIFT finds few points on smooth asphalt (the nuScenes
 clip: a dozen under the driven path), too few to fix the scale from sparse SfM points, so the road is matched
 densely, with the SfM poses held fixed (:func:`pavemap.mesh.ground_points.find_ground_points`: plane-sweep
-NCC of corners, exact for a locally flat road), and the height of every camera over its local road plane
-(:func:`pavemap.mesh.ground_points.estimate_camera_height`) is compared with the known mounting height. The
+NCC of corners, exact for a locally flat road), and the height of every camera over the road it drives over
+(:func:`pavemap.io.sfm_checks.camera_heights`) is compared with the known mounting height. The
 sweep's depth search is centred on a provisional scale, so this refines a scale that is within a factor ~1.6
 already (the sparse estimate); two passes make it converge.
 """
@@ -37,9 +37,9 @@ def _in_mask(uv: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_height: float,
-                 ego_mask: np.ndarray | None = None, scale: float = 0.5,
-                 radius: float = 4.0) -> tuple[np.ndarray, dict]:
-    """Per-camera height (R,) over the local road, in the units of ``T_world_cam`` (R, 4, 4) (z up, metric-ish).
+                 ego_mask: np.ndarray | None = None, scale: float = 0.5) -> tuple[np.ndarray, dict]:
+    """Per-camera height (R,) over the road it drives over (:func:`pavemap.io.sfm_checks.camera_heights`), in
+    the units of ``T_world_cam`` (R, 4, 4) (z up, metric-ish).
 
     ``images`` (R,) are the registered frames in order. Ground points seen on the ego vehicle
     (``ego_mask`` (H, W), True = ego) are dropped. Returns the heights (NaN where unobserved) and stats.
@@ -47,7 +47,8 @@ def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
     import tempfile
 
     from pavemap.io.egomask import write_ego_mask
-    from pavemap.mesh.ground_points import GroundConfig, estimate_camera_height, find_ground_points
+    from pavemap.io.sfm_checks import camera_heights
+    from pavemap.mesh.ground_points import GroundConfig, find_ground_points
     from pavemap.palette import PAVEMAP_CLASSES
 
     frames = [Frame(i, float(i), {camera.name: View(camera.name, str(Path(p).resolve()), T)})
@@ -67,9 +68,12 @@ def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
         stats["dropped_on_ego"] = int(bad.sum())
     if not gp.observable:
         return np.full(len(images), np.nan), stats
-    est = estimate_camera_height(seq, gp, radius=radius, max_radius=3 * radius)[camera.name]
-    stats.update(median=float(est.median), spread=float(est.spread), centres=int(est.n_centres))
-    return np.asarray(est.per_centre, dtype=np.float64), stats
+    heights = camera_heights(gp.points, T_world_cam[:, :3, 3], np.array([0.0, 0.0, 1.0]))
+    h = heights[np.isfinite(heights)]
+    if h.size:
+        med = float(np.median(h))
+        stats.update(median=med, spread=float(1.4826 * np.median(np.abs(h - med))), centres=int(h.size))
+    return heights, stats
 
 
 def refine_scale(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_height: float,
