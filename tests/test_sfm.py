@@ -130,7 +130,7 @@ def _road_under_path(rng: np.random.Generator, n: int = 3000, length: float = 80
 
 
 def test_camera_heights_follow_the_path_over_a_graded_cambered_road():
-    from pavemap.io.sfm_checks import camera_heights
+    from pavemap.geometry.road_height import camera_heights
 
     rng = np.random.default_rng(4)
     P, (grade, _) = _road_under_path(rng)

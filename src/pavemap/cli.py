@@ -14,6 +14,7 @@ import importlib
 import importlib.util
 import re
 import sys
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -133,7 +134,14 @@ for _name in COMMAND_MODULES:
         importlib.import_module(_mod).register(app)
 
 
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    """A warning on the command line: one line, without the source file and line a library user gets."""
+    typer.secho(f"warning: {message}", fg=typer.colors.YELLOW, err=True)
+
+
 def main() -> None:
+    warnings.showwarning = _show_warning
     try:
         app()
     finally:

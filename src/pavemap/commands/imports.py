@@ -73,8 +73,6 @@ def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, seg
         return "segmenter"
     if no_semantics:
         return "none"
-    typer.secho("warning: no --labels or --segmenter: road masks from the trajectory corridor (fallback)",
-                fg=typer.colors.YELLOW, err=True)
     corridor_semantics(seq, camera_height=camera_height)
     return "corridor fallback"
 

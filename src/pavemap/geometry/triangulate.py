@@ -281,35 +281,6 @@ def local_ground(points: np.ndarray, centres: np.ndarray, *, radius: float = 4.0
     return out
 
 
-@dataclass
-class HeightEstimate:
-    """Camera height above the local ground: per centre (C,) (NaN unobserved), the median over observed
-    centres, its robust spread (1.4826 MAD, m), a standard error, counts and whether it is observable."""
-
-    per_centre: np.ndarray
-    median: float
-    spread: float
-    stderr: float
-    n_centres: int
-    observable: bool
-    reason: str
-
-
-def camera_height(centres: np.ndarray, ground: LocalGround, *, min_centres: int = 3) -> HeightEstimate:
-    """Height of each centre (C, 3) above its local ground; summarised robustly."""
-    h = centres[:, 2] - ground.h0
-    ok = np.isfinite(h)
-    n = int(ok.sum())
-    if n < min_centres:
-        return HeightEstimate(h, float("nan"), float("nan"), float("nan"), n, False,
-                              f"ground observed under {n} camera position(s), need {min_centres}")
-    med = float(np.median(h[ok]))
-    spread = float(1.4826 * np.median(np.abs(h[ok] - med)))
-    # neighbouring centres share points, so n over-counts independent samples; sqrt(n/4) is conservative
-    stderr = float(1.2533 * spread / np.sqrt(max(n / 4.0, 1.0)))
-    return HeightEstimate(h, med, spread, stderr, n, True, "")
-
-
 def within_corridor(points: np.ndarray, traj: np.ndarray, corridor: float) -> np.ndarray:
     """(N,) bool: points (N, 3) within ``corridor`` metres (horizontally) of the path traj (F, 3)."""
     from scipy.spatial import cKDTree

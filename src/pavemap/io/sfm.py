@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
-from pavemap.io.sfm_checks import SfmChecks, camera_heights, check_sfm, select_keyframes
+from pavemap.geometry.road_height import camera_heights
+from pavemap.io.sfm_checks import SfmChecks, check_sfm, select_keyframes
 from pavemap.io.sfm_scale import dense_rescale, road_relength
 from pavemap.types import Camera
 

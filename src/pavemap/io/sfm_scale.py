@@ -6,7 +6,7 @@ scale, or set it where the road's steps could not. SIFT finds few points on smoo
 clip: a dozen under the driven path), too few to fix the scale from sparse SfM points, so the road is matched
 densely, with the SfM poses held fixed (:func:`pavemap.mesh.ground_points.find_ground_points`: plane-sweep
 NCC of corners, exact for a locally flat road), and the height of every camera over the road it drives over
-(:func:`pavemap.io.sfm_checks.camera_heights`) is compared with the known mounting height. The
+(:func:`pavemap.geometry.road_height.camera_heights`) is compared with the known mounting height. The
 sweep's depth search is centred on a provisional scale, so this refines a scale that is within a factor ~1.6
 already (the sparse estimate); two passes make it converge.
 """
@@ -38,7 +38,7 @@ def _in_mask(uv: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_height: float,
                  ego_mask: np.ndarray | None = None, scale: float = 0.5) -> tuple[np.ndarray, dict]:
-    """Per-camera height (R,) over the road it drives over (:func:`pavemap.io.sfm_checks.camera_heights`), in
+    """Per-camera height (R,) over the road it drives over (:func:`pavemap.geometry.road_height.camera_heights`), in
     the units of ``T_world_cam`` (R, 4, 4) (z up, metric-ish).
 
     ``images`` (R,) are the registered frames in order. Ground points seen on the ego vehicle
@@ -46,8 +46,8 @@ def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
     """
     import tempfile
 
+    from pavemap.geometry.road_height import camera_heights
     from pavemap.io.egomask import write_ego_mask
-    from pavemap.io.sfm_checks import camera_heights
     from pavemap.mesh.ground_points import GroundConfig, find_ground_points
     from pavemap.palette import PAVEMAP_CLASSES
 

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from pavemap.geometry.grid import GridSpec
-from pavemap.geometry.triangulate import SurfaceCheck, check_height_field, local_ground
-from pavemap.geometry.triangulate import camera_height as height_above
+from pavemap.geometry.road_height import camera_heights, height_estimate
+from pavemap.geometry.triangulate import SurfaceCheck, check_height_field
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool
 from pavemap.mesh.ground_points import GroundPoints, estimate_camera_height
@@ -100,11 +100,12 @@ def find_geometry(seq: Sequence, data: TrainData, cfg: MeshConfig, warn: Warn) -
 
 
 def _height_from_points(geo: Geometry, seq: Sequence, data: TrainData, cfg: MeshConfig) -> None:
-    """Camera height of the frames' mean centres ``data.traj`` above the robust local ground of the road's
-    points, combined with the prior ``cfg.camera_height`` by inverse variance (the points dominate)."""
+    """Camera height of the frames' mean centres ``data.traj`` over the road's points under their path
+    (:func:`pavemap.geometry.road_height.camera_heights`), combined with the prior ``cfg.camera_height`` by
+    inverse variance (the points dominate)."""
     gp = geo.gp
     pts = gp.points[gp.road] if gp.road.sum() >= 30 else gp.points
-    est = height_above(data.traj, local_ground(pts, data.traj, radius=4.0, max_radius=12.0, min_points=30))
+    est = height_estimate(camera_heights(pts, data.traj, np.array([0.0, 0.0, 1.0])))
     for name, e in estimate_camera_height(training_sequence(seq, data), gp).items():
         geo.per_camera[name] = {"found_m": _r(e.median), "spread_m": _r(e.spread), "frames": e.n_centres,
                                 "observable": e.observable}

@@ -25,11 +25,9 @@ import cv2
 import numpy as np
 
 from pavemap.geometry.range_mask import range_mask
+from pavemap.geometry.road_height import HeightEstimate, camera_heights, height_estimate
 from pavemap.geometry.triangulate import (
-    HeightEstimate,
     agrees_with_neighbours,
-    camera_height,
-    local_ground,
     plane_homography,
     triangulate_tracks,
     within_corridor,
@@ -423,24 +421,21 @@ def _assemble(keys, tri, ok, road, track, vid, uv, semantic, scale, stats) -> Gr
                         True, "", stats)
 
 
-def estimate_camera_height(seq: Sequence, gp: GroundPoints, *, radius: float = 4.0, max_radius: float = 12.0,
-                           min_points: int = 30, road_only: bool = True) -> dict[str, HeightEstimate]:
-    """Height of each camera above its local ground, per camera name, from ground points ``gp``.
-
-    Each view's centre gets a robust local plane (RANSAC + Tukey IRLS over points within ``radius``,
-    widened up to ``max_radius``); the camera's height is its median over frames. ``road_only`` fits the
-    road's points (a camera's height is above the road, and kerbs / sidewalks sit 0.1-0.2 m higher).
-    """
+def estimate_camera_height(seq: Sequence, gp: GroundPoints, *, min_points: int = 30,
+                           road_only: bool = True) -> dict[str, HeightEstimate]:
+    """Height of each camera above the road it drives over, per camera name, from ground points ``gp``
+    (:func:`pavemap.geometry.road_height.camera_heights` along the camera's own path; the camera's height is
+    the median over its frames). ``road_only`` uses the road's points when at least ``min_points`` are (a
+    camera's height is above the road, and kerbs / sidewalks sit 0.1-0.2 m higher)."""
     pts = gp.points[gp.road] if road_only and gp.road.sum() >= min_points else gp.points
     out: dict[str, HeightEstimate] = {}
     for name in seq.cameras:
         centres = np.array([f.views[name].T_world_cam[:3, 3] for f in seq.frames if name in f.views])
         if not gp.observable:
-            est = camera_height(centres, local_ground(np.zeros((0, 3)), centres))
+            est = height_estimate(np.full(len(centres), np.nan))
             est.reason = gp.reason
         else:
-            est = camera_height(centres, local_ground(pts, centres, radius=radius, max_radius=max_radius,
-                                                      min_points=min_points))
+            est = height_estimate(camera_heights(pts, centres, Z_UP))
         out[name] = est
     return out
 

@@ -13,7 +13,6 @@ Three ways to get ``semantics/<camera>/<frame>.png`` (uint8 class ids) and the l
 
 from __future__ import annotations
 
-import logging
 import os
 import warnings
 from pathlib import Path
@@ -27,8 +26,6 @@ from pavemap.io.atomic import atomic_path
 from pavemap.io.sequence import SequenceError, load_rgb, load_semantics, write_sequence
 from pavemap.segment.labels import PRESETS, LabelMap, find_label_file, load_label_map
 from pavemap.types import SemanticClass, Sequence
-
-log = logging.getLogger(__name__)
 
 __all__ = [
     "PRESETS",
@@ -169,7 +166,6 @@ def corridor_semantics(
         "detections on parked cars or off the carriageway; give --labels or a segmenter for real filtering."
     )
     warnings.warn(msg, UserWarning, stacklevel=2)
-    log.warning(msg)
     lm = PRESETS["pavemap"]()
     road, other, sky = lm.id_of("road"), lm.id_of("terrain"), lm.id_of("sky")
     h = 1.65 if camera_height is None else float(camera_height)
