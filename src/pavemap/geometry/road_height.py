@@ -71,10 +71,11 @@ def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float 
     minus the point's, so the road's grade cancels and what varies is the camera's height over the road
     under it, which a drifting scale or pitch of the path changes. The road's cross-fall (a camber, a turn's
     superelevation: 4-8 % on the KITTI sample) is taken out first, fitted over ``fall_lateral`` m beside the
-    path and ``fall_window`` m along it with a prior of ``fall_prior`` on it. A plane per camera with a free
-    slope over a radius (:func:`pavemap.geometry.triangulate.local_ground`, this estimate's predecessor) moved
-    the nuScenes clip's heights by ±10 cm where its few points lay 8-12 m ahead or on a parked car's sill beside
-    the lane, and the nuScenes-like rig's by ±2.7 cm (here ±0.5 cm).
+    path and ``fall_window`` m along it with a prior of ``fall_prior`` on it. Why not a plane per camera with a
+    free slope over a radius (:func:`pavemap.geometry.triangulate.local_ground`): where the road's points lie
+    metres ahead of a camera, or few of them beside the lane (a parked car's sill), that plane's tilt is set by
+    a handful of points and its extrapolation to the camera moves the height (README, "One estimate of the
+    camera height").
     """
     from pavemap.maintain.chainage import chainage, route_polyline
 
