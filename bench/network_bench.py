@@ -17,8 +17,11 @@ process: imports and exit too, what a user waits), speedup (serial / dask, of bo
 / dask), peak RSS per worker process (MiB, from the tasks' ``getrusage``), register build time, and the
 machine's load (``uptime``) before and after, since the 2 cores are shared.
 
+``--drive-size preset``: the same 8 drives at the kitti-like preset's own length, rate and image size (80
+frames at 10 Hz, ~12 s a drive instead of ~3 s) -> network-preset.json; data in /tmp/pavemap-network-bench-preset.
+
     nice -n 10 .venv/bin/python bench/network_bench.py [--config default|light] [--sizes 2,4,8,long]
-        [--data /tmp/pavemap-network-bench]
+        [--drive-size small|preset] [--data DIR]
 """
 
 from __future__ import annotations
@@ -39,11 +42,22 @@ sys.path.insert(0, str(ROOT / "bench"))
 SURVEYS = 4  # x 2 vehicles = 8 drives
 
 
-def _drives(data: Path) -> list[dict]:
-    """The 8 drives (synthesised once; kept in ``data`` between bench runs)."""
-    from pavemap.synth import synthesize
+def _world(size: str) -> dict:
+    """The drives' world: the test's small one (24 frames at 4 Hz, half-size images: ~3 s a drive), or the
+    kitti-like preset's own drive length, rate and image size (80 frames at 10 Hz: ~12 s a drive, what
+    `pavemap run` maps end to end in the run bench)."""
     from test_network import WORLD
 
+    if size == "small":
+        return WORLD
+    return {k: v for k, v in WORLD.items() if k not in ("frames", "hz", "scale", "road_after")}
+
+
+def _drives(data: Path, size: str = "small") -> list[dict]:
+    """The 8 drives (synthesised once; kept in ``data`` between bench runs)."""
+    from pavemap.synth import synthesize
+
+    WORLD = _world(size)
     out = []
     for k in range(SURVEYS):
         for lane, vehicle in ((0, "van1"), (1, "van2")):
@@ -62,10 +76,10 @@ CONFIGS = {"light": None, "default": ["device=cpu", "output.figures=false", "out
 LONG = {"frames": 96, "segment_m": 25.0, "overlap_m": 5.0}
 
 
-def _long_drive(data: Path) -> dict:
+def _long_drive(data: Path, size: str = "small") -> dict:
     from pavemap.synth import synthesize
-    from test_network import WORLD
 
+    WORLD = _world(size)
     seq = data / "seqs" / "long"
     if not (seq / "sequence.json").is_file():
         synthesize(seq, **{**WORLD, "frames": LONG["frames"]}, overwrite=True)
@@ -106,7 +120,9 @@ def main() -> None:
     ap.add_argument("--sizes", default="2,4,8,long")
     ap.add_argument("--config", choices=sorted(CONFIGS), default="default",
                     help="drive settings: the preset's defaults, or the test's light ones (startup-bound)")
-    ap.add_argument("--data", type=Path, default=Path("/tmp/pavemap-network-bench"))
+    ap.add_argument("--drive-size", choices=("small", "preset"), default="small",
+                    help="small: the test's 3 s drives; preset: the kitti-like preset's own drives (~12 s)")
+    ap.add_argument("--data", type=Path, help="default: /tmp/pavemap-network-bench[-preset]")
     ap.add_argument("--results", type=Path, help="default: bench/results/network.json (network-light.json)")
     ap.add_argument("--one", nargs=3, metavar=("MODE", "MANIFEST", "NET"), help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -116,24 +132,26 @@ def main() -> None:
         print(json.dumps(_one(a.one[0], Path(a.one[1]), Path(a.one[2]))))
         prepare_quick_exit()  # as the CLI does: process_s is what a user of `pavemap batch` waits
         return
-    results = a.results or ROOT / "bench" / "results" / ("network.json" if a.config == "default" else
-                                                         "network-light.json")
-    drives = _drives(a.data)
+    data = a.data or Path("/tmp/pavemap-network-bench" + ("-preset" if a.drive_size == "preset" else ""))
+    name = "network" + ("-light" if a.config == "light" else "") + ("-preset" if a.drive_size == "preset" else "")
+    results = a.results or ROOT / "bench" / "results" / f"{name}.json"
+    drives = _drives(data, a.drive_size)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
     base = CONFIGS[a.config] or OVERRIDES
     rows = []
     for n in a.sizes.split(","):
-        manifest = a.data / f"manifest-{n}.yaml"
+        manifest = data / f"manifest-{n}.yaml"
         if n == "long":
             over = [*base, f"mesh.segment_m={LONG['segment_m']}", f"mesh.segment_overlap_m={LONG['overlap_m']}"]
-            doc, row = {"config": "kitti", "set": over, "drives": [_long_drive(a.data)]}, {"drives": 1, "long": LONG}
+            doc, row = {"config": "kitti", "set": over, "drives": [_long_drive(data, a.drive_size)]}, {"drives": 1,
+                                                                                                 "long": LONG}
         else:
             doc, row = {"config": "kitti", "set": base, "drives": drives[:int(n)]}, {"drives": int(n)}
         manifest.write_text(json.dumps(doc))  # JSON is YAML
         row["load_before"] = _load()
         for mode in ("serial", "dask-2-workers", "serial-all-threads", "dask-2-workers-spawn"):
-            net = a.data / f"net-{n}-{mode}"
+            net = data / f"net-{n}-{mode}"
             shutil.rmtree(net, ignore_errors=True)  # the bench's own folder: every drive is run afresh
             t = time.perf_counter()
             p = subprocess.run([sys.executable, __file__, "--one", mode, str(manifest), str(net)],
@@ -150,6 +168,7 @@ def main() -> None:
         row["load_after"] = _load()
         rows.append(row)
     write_results(results, {**machine_entry(), "commit": commit, "config": a.config, "set": base,
+                            "drive_size": a.drive_size, "world": _world(a.drive_size),
                             "target_speedup": 1.7, "networks": rows,
                               "note": "2-core machine shared with other jobs; see load_before/after"})
 
