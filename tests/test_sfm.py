@@ -151,3 +151,25 @@ def test_camera_heights_follow_the_path_over_a_graded_cambered_road():
     # each height averages the path's height over the road ±8 m along it: the drift shows, smoothed that much
     np.testing.assert_allclose(h2[seen], 1.5 + 0.3 * x[seen] / x[-1], atol=0.03)
     assert np.ptp(h2[seen]) > 0.2
+    # a camera without a pose is not measured, and the others still are
+    C[0] = np.nan
+    h3 = camera_heights(P, C, np.array([0.0, 0.0, 1.0]))
+    assert np.isnan(h3[0]) and np.isfinite(h3[1:-1]).all()
+
+
+def test_chainage_of_a_long_route_equals_the_exhaustive_projection():
+    from pavemap.maintain.chainage import chainage, cumulative_length, route_polyline
+
+    rng = np.random.default_rng(2)
+    th = np.cumsum(rng.normal(0.0, 0.08, 300))
+    xy = np.c_[np.cumsum(np.cos(th)), np.cumsum(np.sin(th))]
+    route = route_polyline(np.r_[xy, xy[::-1] + [0.0, 0.3]])  # there and back, 0.3 m apart: two passes
+    pts = xy[rng.integers(0, len(xy), 2000)] + rng.normal(0.0, 4.0, (2000, 2))
+    s, o = chainage(route, pts)
+    a, d = route[:-1], np.diff(route, axis=0)
+    t = np.clip(((pts[:, None] - a) * d).sum(-1) / (d * d).sum(-1), 0.0, 1.0)
+    dist = np.linalg.norm(pts[:, None] - (a + t[..., None] * d), axis=-1)
+    k = dist.argmin(1)
+    np.testing.assert_allclose(np.abs(o), dist.min(1), atol=1e-9)
+    np.testing.assert_allclose(s, cumulative_length(route)[k] + t[np.arange(len(k)), k] * np.linalg.norm(d[k], axis=1),
+                               atol=1e-9)

@@ -1,8 +1,9 @@
 """A camera's height over the road it drives over, from road points (pure functions, no I/O).
 
 The one estimate of it, used by stage 1 (the mount height that places the surface,
-:mod:`pavemap.mesh.geometry`), by the ground points' per-camera report and by the SfM checks (the height along
-the path, :mod:`pavemap.io.sfm_checks`). World metric, ``up`` the world's vertical.
+:mod:`pavemap.mesh.geometry`), by the ground points' per-camera report and by the import's SfM scale and checks
+(the height along the path, :mod:`pavemap.io.sfm_scale`, :mod:`pavemap.io.sfm`). World metric, ``up`` the
+world's vertical.
 """
 
 from __future__ import annotations
@@ -63,43 +64,62 @@ def _cross_fall(offset: np.ndarray, h: np.ndarray, prior_sigma: float, iteration
 def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float = 1.5, window: float = 8.0,
                    min_points: int = 5, fall_lateral: float = 3.0, fall_window: float = 24.0,
                    fall_prior: float = 0.04) -> np.ndarray:
-    """(R,) height of each camera centre ``C`` (R, 3) over the road points ``P`` (M, 3) it drives over, along
-    ``up`` (3,); NaN where fewer than ``min_points`` points lie within ``lateral`` m beside the path and
-    ``window`` m along it from the camera.
+    """(R,) height of each camera centre ``C`` (R, 3), in time order, over the road points ``P`` (M, 3) it
+    drives over, along ``up`` (3,); NaN where fewer than ``min_points`` points lie within ``lateral`` m beside
+    the path and ``window`` m along it from the camera, and for a non-finite centre.
 
     A point's height is the path's own height at the point's chainage (interpolated between the cameras)
     minus the point's, so the road's grade cancels and what varies is the camera's height over the road
     under it, which a drifting scale or pitch of the path changes. The road's cross-fall (a camber, a turn's
     superelevation: 4-8 % on the KITTI sample) is taken out first, fitted over ``fall_lateral`` m beside the
-    path and ``fall_window`` m along it with a prior of ``fall_prior`` on it. Why not a plane per camera with a
-    free slope over a radius (:func:`pavemap.geometry.triangulate.local_ground`): where the road's points lie
-    metres ahead of a camera, or few of them beside the lane (a parked car's sill), that plane's tilt is set by
-    a handful of points and its extrapolation to the camera moves the height (README, "One estimate of the
-    camera height").
+    path and ``fall_window`` m along it with a prior of ``fall_prior`` on it. Road beyond the path's ends
+    counts only within ``lateral`` of the end camera. A path that retraces itself exactly gives both passes
+    one chainage. Why not a plane per camera with a free slope over a radius
+    (:func:`pavemap.geometry.triangulate.local_ground`): where the road's points lie metres ahead of a camera,
+    or few of them beside the lane (a parked car's sill), that plane's tilt is set by a handful of points and
+    its extrapolation to the camera moves the height (README, "One estimate of the camera height").
     """
-    from pavemap.maintain.chainage import chainage, route_polyline
+    from scipy.spatial import cKDTree
+
+    from pavemap.maintain.chainage import chainage, cumulative_length, route_polyline
 
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     basis = np.stack([e1, np.cross(up, e1)], axis=1)  # (3, 2) horizontal axes
+    C = np.asarray(C, dtype=np.float64)
+    P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
     out = np.full(len(C), np.nan)
-    if len(P) < min_points or len(C) < 2:
+    cams = np.flatnonzero(np.isfinite(C).all(1))
+    P = P[np.isfinite(P).all(1)]
+    if len(P) < min_points or len(cams) < 2:
         return out
-    route = route_polyline(C @ basis)
+    route = route_polyline(C[cams] @ basis)
     if len(route) < 2:
         return out
-    s_cam, _ = chainage(route, C @ basis)
+    # only points near the route reach the chainage (whose cost is points x route pieces): the route sampled
+    # every 0.25 m is within 0.125 m of the polyline
+    L = cumulative_length(route)
+    dense = np.stack([np.interp(np.arange(0.0, L[-1] + 0.25, 0.25), L, route[:, k]) for k in range(2)], axis=1)
+    near_route = cKDTree(dense).query(P @ basis)[0] <= max(lateral, fall_lateral) + 0.25
+    P = P[near_route]
+    if len(P) < min_points:
+        return out
+    s_cam, _ = chainage(route, C[cams] @ basis)
     s, o = chainage(route, P @ basis)
     order = np.argsort(s_cam, kind="stable")
-    h = np.interp(s, s_cam[order], (C @ up)[order]) - P @ up
-    for j in range(len(C)):
-        near = (np.abs(s - s_cam[j]) <= window) & (np.abs(o) <= lateral)
+    h = np.interp(s, s_cam[order], (C[cams] @ up)[order]) - P @ up
+    by_s = np.argsort(s, kind="stable")
+    s, o, h = s[by_s], o[by_s], h[by_s]
+    for j, sj in zip(cams, s_cam, strict=True):
+        lo, hi = np.searchsorted(s, [sj - fall_window, sj + fall_window], side="left")
+        sw, ow, hw = s[lo:hi], o[lo:hi], h[lo:hi]
+        near = (np.abs(sw - sj) <= window) & (np.abs(ow) <= lateral)
         if near.sum() < min_points:
             continue
-        wide = (np.abs(s - s_cam[j]) <= fall_window) & (np.abs(o) <= fall_lateral)
-        fall = _cross_fall(o[wide], h[wide], fall_prior) if wide.sum() >= min_points else 0.0
-        out[j] = float(np.median(h[near] - fall * o[near]))
+        wide = np.abs(ow) <= fall_lateral
+        fall = _cross_fall(ow[wide], hw[wide], fall_prior) if wide.sum() >= min_points else 0.0
+        out[j] = float(np.median(hw[near] - fall * ow[near]))
     return out
 
 

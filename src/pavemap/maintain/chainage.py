@@ -46,24 +46,43 @@ def chainage(route: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndar
     a, b = route[:-1], route[1:]  # (S, 2) pieces
     d = b - a
     L2 = np.maximum((d * d).sum(1), 1e-12)
-    # (N, S) foot parameter of every point on every piece; chunked so N*S stays cache-sized
+    cum = cumulative_length(route)
+    cand = _candidate_pieces(route, cum, pts)  # (N, K) piece indices; every piece when the route is short
     s_out = np.empty(len(pts))
     o_out = np.empty(len(pts))
-    cum = cumulative_length(route)
-    step = max(1, 2_000_000 // len(a))
+    step = max(1, 2_000_000 // cand.shape[1])  # chunks of N*K that stay cache-sized
     for i0 in range(0, len(pts), step):
         p = pts[i0:i0 + step, None, :]
-        t = np.clip(((p - a) * d).sum(-1) / L2, 0.0, 1.0)
-        foot = a + t[..., None] * d
+        c = cand[i0:i0 + step]
+        t = np.clip(((p - a[c]) * d[c]).sum(-1) / L2[c], 0.0, 1.0)
+        foot = a[c] + t[..., None] * d[c]
         dist2 = ((p - foot) ** 2).sum(-1)
-        k = np.argmin(dist2, axis=1)
-        rows = np.arange(len(k))
-        tk = t[rows, k]
-        s_out[i0:i0 + step] = cum[k] + tk * np.sqrt(L2[k])
-        v = p[:, 0, :] - foot[rows, k]
+        j = np.argmin(dist2, axis=1)
+        rows = np.arange(len(j))
+        k = c[rows, j]
+        s_out[i0:i0 + step] = cum[k] + t[rows, j] * np.sqrt(L2[k])
+        v = p[:, 0, :] - foot[rows, j]
         cross = d[k, 0] * v[:, 1] - d[k, 1] * v[:, 0]
-        o_out[i0:i0 + step] = np.sign(cross) * np.sqrt(dist2[rows, k])
+        o_out[i0:i0 + step] = np.sign(cross) * np.sqrt(dist2[rows, j])
     return s_out, o_out
+
+
+def _candidate_pieces(route: np.ndarray, cum: np.ndarray, pts: np.ndarray, spacing: float = 0.5,
+                      k: int = 8) -> np.ndarray:
+    """(N, K) int64 indices of the route pieces that can hold each point's foot: all of them for a route of
+    few pieces; otherwise the pieces of the ``k`` route samples (every ``spacing`` m) nearest the point and
+    their neighbours, so a long route costs points x 3k, not points x pieces."""
+    n_pieces = len(route) - 1
+    if n_pieces <= 3 * k:
+        return np.broadcast_to(np.arange(n_pieces), (len(pts), n_pieces))
+    from scipy.spatial import cKDTree
+
+    at = np.arange(0.0, cum[-1] + spacing, spacing)
+    piece = np.clip(np.searchsorted(cum, at, side="right") - 1, 0, n_pieces - 1)
+    xy = np.stack([np.interp(at, cum, route[:, i]) for i in range(2)], axis=1)
+    _, near = cKDTree(xy).query(pts, k=min(k, len(xy)))
+    near = piece[np.asarray(near).reshape(len(pts), -1)]
+    return np.clip(np.concatenate([near - 1, near, near + 1], axis=1), 0, n_pieces - 1)
 
 
 __all__ = ["chainage", "cumulative_length", "route_polyline"]
