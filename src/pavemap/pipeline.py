@@ -111,21 +111,22 @@ def _setup_log(out: Path) -> logging.Handler:
 # ---------------------------------------------------------------------------- stages
 
 
-def _detect(seq: Sequence, d: DetectorConfig, device: str, out: Path) -> Path:
+def _detect(seq: Sequence, d: DetectorConfig, device: str, out: Path, progress: bool = True) -> Path:
     """Stage 2a with a resolved backend (:func:`pavemap.detect.backends.resolve_backend`) -> detections.jsonl."""
     det_path = out / DETECTIONS_FILE
     if d.backend == "sim":
         from pavemap.synth.simdetector import SimDetectorConfig
         from pavemap.synth.simdetector import detect_sequence as sim_detect
 
-        sim_detect(seq, seed=d.seed, out=det_path, config=SimDetectorConfig(paint_share=d.paint_fp))
+        sim_detect(seq, seed=d.seed, out=det_path, config=SimDetectorConfig(paint_share=d.paint_fp),
+                   progress=progress)
     elif d.backend == "yolo":
         from pavemap.detect.yolo import detect_sequence as yolo_detect
 
         assert d.weights is not None  # resolve_backend sets them
         yolo_detect(
             seq, weights=Path(d.weights), out=det_path, imgsz=d.imgsz, conf=d.conf, device=device,
-            batch=d.batch, class_map=Path(d.class_map) if d.class_map else None,
+            batch=d.batch, class_map=Path(d.class_map) if d.class_map else None, progress=progress,
         )
     else:  # file
         src = Path(d.file) if d.file else (seq.root / DETECTIONS_FILE if seq.root else None)
@@ -261,7 +262,7 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
 
     mesh_dir = out / "mesh"
     mesh, timings["mesh"] = _mesh_stage(seq, cfg, device, seq_key, stages, mesh_dir, progress)
-    key, timings["detect"] = _detect_stage(seq, detector, device, seq_key, stages, out)
+    key, timings["detect"] = _detect_stage(seq, detector, device, seq_key, stages, out, progress)
     detections = read_detections(out / DETECTIONS_FILE)
 
     # Stages 2b + 3: filter, then fusion (cheap: always redone, so the result is in memory).
@@ -323,7 +324,7 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
 
 
 def _detect_stage(seq: Sequence, detector: DetectorConfig, device: str, seq_key: str, stages: Stages,
-                  out: Path) -> tuple[str, float]:
+                  out: Path, progress: bool = True) -> tuple[str, float]:
     """Stage 2a: ``detections.jsonl``, reused when its stamp matches. Returns (stage key, seconds)."""
     parts = detect_parts(seq_key, detector, device, seq)
     key = hash_parts(parts)
@@ -334,7 +335,7 @@ def _detect_stage(seq: Sequence, detector: DetectorConfig, device: str, seq_key:
     stages.invalidate_after("detect")
     log.info("detect: backend %s (%s)", detector.backend, why_changed(stages.parts("detect"), parts))
     stages.start("detect", key, parts)
-    _detect(seq, detector, device, out)
+    _detect(seq, detector, device, out, progress)
     seconds = time.perf_counter() - t
     stages.mark("detect", key, seconds, parts)
     return key, seconds

@@ -110,8 +110,10 @@ def detect_sequence(
     batch: int = 8,
     class_map: str | os.PathLike | None = None,
     iou: float = 0.5,
+    progress: bool = True,
 ) -> int:
-    """Run a YOLO detection model over every view of ``seq``; write ``out`` (detections.jsonl).
+    """Run a YOLO detection model over every view of ``seq``; write ``out`` (detections.jsonl); a progress bar
+    on a terminal when ``progress``.
 
     Boxes come back in full-resolution pixels of each original image (ultralytics
     undoes its letterbox). Model classes are mapped by name to D00/D10/D20/D40
@@ -137,7 +139,7 @@ def detect_sequence(
     dets: list[Detection] = []
     extra: list[dict] = []
     n_dropped = 0
-    with tqdm(total=len(views), desc="yolo detect", unit="img", disable=None) as bar:
+    with tqdm(total=len(views), desc="yolo detect", unit="img", disable=None if progress else True) as bar:
         for chunk in _batches(views, batch):
             # ultralytics wants BGR arrays; reading ourselves gives clear errors on bad files
             imgs = [np.ascontiguousarray(load_rgb(seq.path(v.image))[:, :, ::-1]) for _, _, v in chunk]

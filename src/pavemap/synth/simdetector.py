@@ -201,8 +201,9 @@ def _jitter(rng, box, frac: float, W: int, H: int):
 
 
 def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
-                    config: SimDetectorConfig | None = None) -> int:
-    """Simulate detections for a synthetic sequence; write ``out`` (default SEQ/detections.jsonl).
+                    config: SimDetectorConfig | None = None, progress: bool = True) -> int:
+    """Simulate detections for a synthetic sequence; write ``out`` (default SEQ/detections.jsonl); a progress
+    bar on stderr for 50 views or more when ``progress``.
 
     Also writes ``truth/detections_truth.jsonl`` aligned line by line. Returns the number of detections.
     """
@@ -223,7 +224,7 @@ def detect_sequence(seq: Sequence, seed: int = 0, out: Path | None = None,
     dets: list[tuple[tuple, Detection, dict]] = []
     views: list[_View] = []
     n_views = sum(len(f.views) for f in seq.frames)
-    bar = tqdm(total=n_views, desc="sim detect", unit="view", disable=n_views < 50)
+    bar = tqdm(total=n_views, desc="sim detect", unit="view", disable=not progress or n_views < 50)
     for f in seq.frames:
         for cam in f.views:
             view, road_ii, (ids, cnt, x1, y1, x2, y2) = _load_view(seq, f, cam, names, road_lut, cfg)
