@@ -57,14 +57,14 @@ def _drives(data: Path, size: str = "small") -> list[dict]:
     """The 8 drives (synthesised once; kept in ``data`` between bench runs)."""
     from pavemap.synth import synthesize
 
-    WORLD = _world(size)
+    world = _world(size)
     out = []
     for k in range(SURVEYS):
         for lane, vehicle in ((0, "van1"), (1, "van2")):
             name = f"s{k}-{vehicle}"
             seq = data / "seqs" / name
             if not (seq / "sequence.json").is_file():
-                synthesize(seq, **WORLD, survey=k, ego_lane=lane, overwrite=True)
+                synthesize(seq, **world, survey=k, ego_lane=lane, overwrite=True)
             out.append({"path": str(seq), "date": f"2026-{1 + 3 * k:02d}-05", "name": name, "vehicle": vehicle})
     return out
 
@@ -79,10 +79,10 @@ LONG = {"frames": 96, "segment_m": 25.0, "overlap_m": 5.0}
 def _long_drive(data: Path, size: str = "small") -> dict:
     from pavemap.synth import synthesize
 
-    WORLD = _world(size)
+    world = _world(size)
     seq = data / "seqs" / "long"
     if not (seq / "sequence.json").is_file():
-        synthesize(seq, **{**WORLD, "frames": LONG["frames"]}, overwrite=True)
+        synthesize(seq, **{**world, "frames": LONG["frames"]}, overwrite=True)
     return {"path": str(seq), "date": "2026-01-05", "name": "long", "vehicle": "van1"}
 
 

@@ -79,9 +79,7 @@ def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float 
     or few of them beside the lane (a parked car's sill), that plane's tilt is set by a handful of points and
     its extrapolation to the camera moves the height (README, "One estimate of the camera height").
     """
-    from scipy.spatial import cKDTree
-
-    from pavemap.maintain.chainage import chainage, cumulative_length, route_polyline
+    from pavemap.maintain.chainage import chainage, route_polyline
 
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -97,16 +95,10 @@ def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float 
     route = route_polyline(C[cams] @ basis)
     if len(route) < 2:
         return out
-    # only points near the route reach the chainage (whose cost is points x route pieces): the route sampled
-    # every 0.25 m is within 0.125 m of the polyline
-    L = cumulative_length(route)
-    dense = np.stack([np.interp(np.arange(0.0, L[-1] + 0.25, 0.25), L, route[:, k]) for k in range(2)], axis=1)
-    near_route = cKDTree(dense).query(P @ basis)[0] <= max(lateral, fall_lateral) + 0.25
-    P = P[near_route]
-    if len(P) < min_points:
-        return out
     s_cam, _ = chainage(route, C[cams] @ basis)
     s, o = chainage(route, P @ basis)
+    beside = np.abs(o) <= max(lateral, fall_lateral)
+    P, s, o = P[beside], s[beside], o[beside]
     order = np.argsort(s_cam, kind="stable")
     h = np.interp(s, s_cam[order], (C[cams] @ up)[order]) - P @ up
     by_s = np.argsort(s, kind="stable")

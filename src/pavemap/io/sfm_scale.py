@@ -46,7 +46,7 @@ def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
     """
     import tempfile
 
-    from pavemap.geometry.road_height import camera_heights
+    from pavemap.geometry.road_height import camera_heights, height_estimate
     from pavemap.io.egomask import write_ego_mask
     from pavemap.mesh.ground_points import GroundConfig, find_ground_points
     from pavemap.palette import PAVEMAP_CLASSES
@@ -69,10 +69,9 @@ def road_heights(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
     if not gp.observable:
         return np.full(len(images), np.nan), stats
     heights = camera_heights(gp.points, T_world_cam[:, :3, 3], np.array([0.0, 0.0, 1.0]))
-    h = heights[np.isfinite(heights)]
-    if h.size:
-        med = float(np.median(h))
-        stats.update(median=med, spread=float(1.4826 * np.median(np.abs(h - med))), centres=int(h.size))
+    est = height_estimate(heights, min_centres=1)
+    if est.observable:
+        stats.update(median=est.median, spread=est.spread, centres=est.n_centres)
     return heights, stats
 
 
