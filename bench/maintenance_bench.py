@@ -97,10 +97,11 @@ def truth_surface(seq_root: Path, surface):  # noqa: ANN001, ANN201
                        inside.reshape(ny, nx) & surface.valid.cpu())
 
 
-def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str) -> tuple:
+def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str, floor_sweep: bool = False) -> tuple:
     """pavemap.run, then fusion again in memory (label image) and the maintenance stage the pipeline runs
     (:func:`pavemap.maintain.assess`: surface and sample measures, footprint sizes) on the mesh, and the surface
-    measures on the true surface without samples (the measuring method alone)."""
+    measures on the true surface without samples (the measuring method alone); ``floor_sweep``: the maintenance
+    stage's ``floor_sweep`` (pothole floors from the images where the drive has no depth layer)."""
     import pavemap
     from pavemap.io.sequence import DETECTIONS_FILE, read_detections, read_sequence
     from pavemap.maintain import assess
@@ -121,7 +122,8 @@ def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str) -> t
     mark_observed(res.instances, mesh)
     on_truth = copy.deepcopy(res.instances)
     t = time.perf_counter()
-    assess(res.instances, seq, mesh.surface, res.instance_labels, mesh.observed, samples=mesh.samples)
+    assess(res.instances, seq, mesh.surface, res.instance_labels, mesh.observed, samples=mesh.samples,
+           floor_sweep=floor_sweep)
     measure_s = time.perf_counter() - t
     # the measuring method alone: the true surface is the floor's measurement, no samples (assess would add the
     # drive's depth pixels, which made this row 4.5 mm with sparse depth against 0.7 mm without)

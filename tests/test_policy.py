@@ -189,7 +189,9 @@ def test_assess_instances_sets_the_record_and_sorts_by_urgency():
 def test_maintenance_config_section(tmp_path):
     cfg = load_config(None, overrides=["maintenance.segment_m=50", "maintenance.lane_width_m=3.2"])
     assert cfg.maintenance.segment_m == 50.0 and cfg.maintenance.lane_width_m == 3.2
-    assert cfg.to_dict()["maintenance"] == {"policy": "", "segment_m": 50.0, "lane_width_m": 3.2}
+    assert cfg.to_dict()["maintenance"] == {"policy": "", "segment_m": 50.0, "lane_width_m": 3.2,
+                                            "floor_sweep": False}
+    assert load_config(None, overrides=["maintenance.floor_sweep=true"]).maintenance.floor_sweep is True
     with pytest.raises(PavemapError, match="maintenance.segment_m must be"):
         load_config(None, overrides=["maintenance.segment_m=-5"])
     bad = _write(tmp_path, _changed(("severity", "D40", "bands", "medium"), [20, 50]))

@@ -276,7 +276,7 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
     m = cfg.maintenance  # what to repair first (issue 16): measures, severity, urgency, road segments
     result.segments = assess(result.instances, seq, mesh.surface, result.instance_labels, mesh.observed,
                              policy=m.policy, segment_m=m.segment_m, lane_width_m=m.lane_width_m,
-                             samples=mesh.samples)
+                             samples=mesh.samples, floor_sweep=m.floor_sweep)
     result.metrics["maintenance"] = summary(result.instances, result.segments)
     timings["fuse"] = time.perf_counter() - t
     stages.mark("fuse", hash_parts(key, dataclasses.asdict(cfg.filter), dataclasses.asdict(cfg.fusion)),

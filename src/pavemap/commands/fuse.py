@@ -106,7 +106,8 @@ def register(app: typer.Typer) -> None:
             result.segments = assess(result.instances, s, surf, result.instance_labels,
                                      getattr(m, "observed", None) if surface.value in ("mesh", "auto") else None,
                                      policy=mc.policy, segment_m=mc.segment_m, lane_width_m=mc.lane_width_m,
-                                     samples=getattr(m, "samples", None) if surface.value in ("mesh", "auto") else None)
+                                     samples=getattr(m, "samples", None) if surface.value in ("mesh", "auto") else None,
+                                     floor_sweep=mc.floor_sweep)
             result.metrics["maintenance"] = summary(result.instances, result.segments)
             ev = None
             if truth and (seq / "truth" / "defects.geojson").is_file():

@@ -92,7 +92,7 @@ def assess_instances(instances: list[DefectInstance], route: np.ndarray | None,
 def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels: np.ndarray | None = None,  # noqa: ANN001
            observed=None, policy: Policy | str | os.PathLike | None = None, segment_m: float = 100.0,  # noqa: ANN001
            lane_width_m: float | None = None, samples: np.ndarray | None = None,
-           measure: MeasureConfig | None = None) -> list[Segment]:
+           measure: MeasureConfig | None = None, floor_sweep: bool = False) -> list[Segment]:
     """The maintenance stage: measure, grade and rank the fused instances (in place) and cut the road into segments.
 
     instances: stage 3's :class:`DefectInstance` list; seq: the drive (its trajectory is the route);
@@ -103,7 +103,8 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
     mesh's height measurements (``RoadMesh.samples``) or None, to which the sequence's full-resolution depth
     pixels under the potholes are added (:func:`pavemap.maintain.samples.depth_samples`); measure: the
     :class:`~pavemap.maintain.measure.MeasureConfig` (default: ``surface_floor`` False, a pothole's depth only
-    from depth measurements inside it, see :func:`_pothole_samples`).
+    from measurements inside it, see :func:`_pothole_samples`); floor_sweep: without a depth layer, measure the
+    floors by :func:`pavemap.maintain.floor_sweep.floor_samples`.
 
     Runs :func:`pavemap.maintain.measure.measure_instances` (depth, volume, crack length, orientation) ->
     chainage, offset, lane position -> severity level, certainty -> urgency, priority rank ->
@@ -115,8 +116,14 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
     route = route_polyline(seq.trajectory()) if seq.frames else np.zeros((0, 2))
     if surface is not None:
         measure_instances(instances, surface, labels, observed=observed, route=route if len(route) else None,
-                          samples=_pothole_samples(instances, seq, samples),
+                          samples=_pothole_samples(instances, seq, samples, surface if floor_sweep else None),
                           config=measure or MeasureConfig(surface_floor=False))
+    for inst in instances:  # the sweep's samples and reasons say so ("0 height samples inside it" does not)
+        why, note = inst.extra.pop("floor_sweep_note", None), str(inst.extra.get("measure_note", ""))
+        if why and note.startswith("floor not measured ("):
+            inst.extra["measure_note"] = f"floor not measured ({why})"
+        elif why is not None and note.startswith("from "):
+            inst.extra["measure_note"] = note.replace("height samples", "floor-sweep samples (images)")
     adopt_footprint_sizes(instances)
     assess_instances(instances, route, pol, lane_width_m)
     if len(route) == 0:
@@ -128,20 +135,30 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
     return segments
 
 
-def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np.ndarray | None) -> np.ndarray | None:
-    """The height measurements that can measure a pothole's floor: the mesh's samples plus the depth pixels under
-    the potholes (their polygons' boxes, 0.7 m wider), where the drive has a depth layer; None without one.
+def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np.ndarray | None,
+                     surface=None) -> np.ndarray | None:  # noqa: ANN001
+    """The height measurements that can measure a pothole's floor: where the drive has a depth layer, the mesh's
+    samples plus the depth pixels under the potholes (their polygons' boxes, 0.7 m wider); without one, the
+    floors found by :func:`pavemap.maintain.floor_sweep.floor_samples` on ``surface``'s road planes, or None
+    (no surface given: the depth is not measured).
 
-    Without depth the mesh's samples are triangulated ground points, matched by a sweep of horizontal planes
-    (exact on flat road, not in a dent): inside a pothole they sit on the rim and the far wall, which a forward
-    camera sees, not on the floor behind the near rim. On the bench's no-depth kitti-like drive they gave 5
-    potholes depths 16-76 mm off (median 23 mm), so they measure no depth and the pothole is "not measurable".
+    Without depth the mesh's samples are not used: they are triangulated ground points, matched by a sweep of
+    horizontal planes over the whole road (exact on flat road, not in a dent), and inside a pothole they sit on
+    the rim and the far wall (on the bench's no-depth kitti-like drive 5 potholes' depths came out 16-76 mm
+    off, median 23 mm).
     """
+    pots = [i for i in instances if i.cls == 3 and i.polygon is not None and not i.polygon.is_empty]
+    if not any(v.depth for f in seq.frames for v in f.views.values()):
+        if surface is None:
+            return None
+        from pavemap.maintain.floor_sweep import floor_samples
+
+        pts, why = floor_samples(seq, [i.polygon for i in pots], surface)
+        for inst, w in zip(pots, why, strict=True):
+            inst.extra["floor_sweep_note"] = w or ""
+        return pts
     from pavemap.maintain.samples import depth_samples
 
-    if not any(v.depth for f in seq.frames for v in f.views.values()):
-        return None
-    pots = [i for i in instances if i.cls == 3 and i.polygon is not None and not i.polygon.is_empty]
     boxes = np.array([np.asarray(i.polygon.bounds) + [-0.7, -0.7, 0.7, 0.7] for i in pots]).reshape(-1, 4)
     extra = depth_samples(seq, boxes) if len(boxes) else np.zeros((0, 3))
     parts = [p for p in (samples, extra) if p is not None and len(p)]
