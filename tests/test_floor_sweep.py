@@ -139,3 +139,21 @@ def test_run_measures_pothole_depth_without_depth_only_when_asked(drives, tmp_pa
     assert measured, notes[True]
     assert all("floor-sweep samples" in n for _, n in measured)
     assert all(20.0 < d < 120.0 for d, _ in measured)
+
+
+def test_views_whose_bonnet_hides_the_pothole_are_not_used(drives):
+    """A camera whose ego mask covers the whole image sees no pothole: none is measured, and the reason says so."""
+    from PIL import Image
+
+    root = drives["full"]
+    seq, surface = read_sequence(root), read_truth_height(root)
+    cam = seq.cameras["CAM_FRONT"]
+    mask = root / "masks" / "all.png"
+    mask.parent.mkdir(exist_ok=True)
+    Image.fromarray(np.full((cam.height, cam.width), 255, np.uint8)).save(mask)
+    try:
+        cam.ego_mask = "masks/all.png"
+        pts, why = floor_samples(seq, [p for p, _ in _potholes(root)], surface)
+    finally:
+        mask.unlink()
+    assert len(pts) == 0 and all(w.startswith("no two views") for w in why), why

@@ -405,7 +405,7 @@ class MaintenanceConfig:
       around each (:mod:`pavemap.maintain.floor_sweep`; full-size images); False (default): their depth is not
       measured without depth. Off by default: on full-size synthetic drives it measures a minority of the
       potholes (3 of 7 on kitti-like, to 7.5 mm median), grades fewer of them right than their areas do, and on
-      the real nuScenes clip read 44 mm of depth on plain road (README, "Pothole depth from the images").
+      the real nuScenes clip read 31 mm of depth on plain road (README, "Pothole depth from the images").
     """
 
     policy: str = ""
