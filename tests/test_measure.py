@@ -286,7 +286,7 @@ def test_crack_length_is_the_footprints_longer_midline(a, b):
     bx = (min(u), min(v), max(u), max(v))
     seq = Sequence("t", [], {"cam": Camera("cam", 640, 480, K)}, [Frame(0, 0.0, {"cam": View("cam", "0.png", T)})])
     hit = np.array([[(a[0] + b[0]) / 2, (a[1] + b[1]) / 2, 0.0]])
-    area, length, ok = detection_footprints(seq, [Detection(0, "cam", bx, 1, 0.9)], hit)
+    area, length, ok, _ = detection_footprints(seq, [Detection(0, "cam", bx, 1, 0.9)], hit)
     true = math.dist(a, b)
     assert bool(ok[0]) and abs(length[0] - true) <= 0.03 * true, (length[0], true)
     q, _ = footprint_quads(torch.tensor([bx], dtype=torch.float64), torch.tensor(K[None]), torch.tensor(T[None]),
@@ -308,7 +308,7 @@ def test_a_box_near_the_image_edge_gives_no_footprint():
     seq = Sequence("t", [], {"cam": Camera("cam", 640, 480, K)}, [Frame(0, 0.0, {"cam": View("cam", "0.png", T)})])
     hit = np.array([[6.0, 2.0, 0.0]] * 2)
     dets = [Detection(0, "cam", (x0, 360.0, 200.0, 380.0), 1, 0.9) for x0 in (7.0, 20.0)]
-    area, length, ok = detection_footprints(seq, dets, hit)
+    area, length, ok, _ = detection_footprints(seq, dets, hit)
     assert not ok[0] and np.isnan(length[0]) and ok[1] and length[1] > 0
     assert detection_footprints(seq, dets[:1], hit[:1], border_frac=0.0)[2][0]  # the old 2 px margin passed it
 

@@ -23,7 +23,7 @@ from pavemap.device import resolve_device
 from pavemap.fuse.accumulate import accumulate, probability
 from pavemap.fuse.associate import associate_detections
 from pavemap.fuse.config import FusionConfig
-from pavemap.fuse.footprint import detection_footprints, instance_sizes
+from pavemap.fuse.footprint import detection_footprints, instance_outlines, instance_sizes
 from pavemap.fuse.instances import build_instances
 from pavemap.fuse.maps import bev_grid, splat
 from pavemap.geometry.grid import GridSpec
@@ -141,8 +141,9 @@ def fuse(seq: Sequence, filtered: Filtered, surface, config: FusionConfig,  # no
     steps.close()
 
     inst_of, hits, ground_px = _detection_records(seq, kept, kept_idx, records, asc, labels, pair_det, pair_vid)
-    fp_area, fp_length, _ = detection_footprints(seq, kept, hits)
+    fp_area, fp_length, _, fp_quads = detection_footprints(seq, kept, hits)
     instance_sizes(instances, inst_of, fp_area, fp_length, ground_px)
+    instance_outlines(instances, inst_of, fp_quads, ground_px)
     if config.centroid == "detections":
         _centroids_from_detections(instances, inst_of, hits, ground_px)
     baseline = baseline_instances(kept, pair_det, pair_vid, grid_v.x0, grid_v.y0, grid_v.res, nx,

@@ -114,9 +114,11 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
 
     pol = _policy(policy)
     route = route_polyline(seq.trajectory()) if seq.frames else np.zeros((0, 2))
+    outlines = {i.id: i.extra.pop("footprint_outline", None) for i in instances}  # fusion's, never exported
     if surface is not None:
         measure_instances(instances, surface, labels, observed=observed, route=route if len(route) else None,
-                          samples=_pothole_samples(instances, seq, samples, surface if floor_sweep else None),
+                          samples=_pothole_samples(instances, seq, samples, surface if floor_sweep else None,
+                                                   outlines),
                           config=measure or MeasureConfig(surface_floor=False))
     for inst in instances:  # the sweep's samples and reasons say so ("0 height samples inside it" does not)
         why, note = inst.extra.pop("floor_sweep_note", None), str(inst.extra.get("measure_note", ""))
@@ -136,11 +138,10 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
 
 
 def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np.ndarray | None,
-                     surface=None) -> np.ndarray | None:  # noqa: ANN001
+                     surface=None, outlines: dict | None = None) -> np.ndarray | None:  # noqa: ANN001
     """The height measurements that can measure a pothole's floor: where the drive has a depth layer, the mesh's
-    samples plus the depth pixels under the potholes (their polygons' boxes, 0.7 m wider); without one, the
-    floors found by :func:`pavemap.maintain.floor_sweep.floor_samples` on ``surface``'s road planes, or None
-    (no surface given: the depth is not measured).
+    samples plus the depth pixels under the potholes (their polygons' boxes, 0.7 m wider); without one None,
+    and with ``surface`` each pothole gets its own floor samples from the images (:func:`_sweep_floors`).
 
     Without depth the mesh's samples are not used: they are triangulated ground points, matched by a sweep of
     horizontal planes over the whole road (exact on flat road, not in a dent), and inside a pothole they sit on
@@ -149,20 +150,43 @@ def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np
     """
     pots = [i for i in instances if i.cls == 3 and i.polygon is not None and not i.polygon.is_empty]
     if not any(v.depth for f in seq.frames for v in f.views.values()):
-        if surface is None:
-            return None
-        from pavemap.maintain.floor_sweep import floor_samples
-
-        pts, why = floor_samples(seq, [i.polygon for i in pots], surface)
-        for inst, w in zip(pots, why, strict=True):
-            inst.extra["floor_sweep_note"] = w or ""
-        return pts
+        if surface is not None:
+            _sweep_floors(pots, seq, surface, outlines or {})
+        return None
     from pavemap.maintain.samples import depth_samples
 
     boxes = np.array([np.asarray(i.polygon.bounds) + [-0.7, -0.7, 0.7, 0.7] for i in pots]).reshape(-1, 4)
     extra = depth_samples(seq, boxes) if len(boxes) else np.zeros((0, 3))
     parts = [p for p in (samples, extra) if p is not None and len(p)]
     return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
+
+
+def _sweep_floors(pots: list[DefectInstance], seq: Sequence, surface, outlines: dict) -> None:  # noqa: ANN001
+    """Each pothole's floor samples and their road plane from :func:`pavemap.maintain.floor_sweep.floor_sets` into
+    ``extra["floor_samples"]`` (measure takes them out), and the sweep's reason where it found none into
+    ``extra["floor_sweep_note"]``. The sweep's outline: the finest detection's footprint scaled to the inscribed
+    ellipse's area (:data:`pavemap.fuse.footprint.FILL`), else the fused polygon."""
+    from shapely import affinity
+    from shapely.geometry import Polygon
+
+    from pavemap.fuse.footprint import FILL
+    from pavemap.maintain.floor_sweep import floor_sets
+    from pavemap.maintain.measure import MeasureConfig
+
+    need = MeasureConfig().min_samples
+    for inst in pots:
+        quad = outlines.get(inst.id)
+        poly = Polygon(quad) if quad else None
+        if poly is None or not poly.is_valid or poly.area <= 0:
+            poly = inst.polygon
+        else:
+            k = float(np.sqrt(FILL[3]))
+            poly = affinity.scale(poly, k, k, origin="centroid")
+        [(pts, why, plane)] = floor_sets(seq, [poly], surface)
+        note = why or (f"{len(pts)} floor-sweep cells inside it, {need} needed" if len(pts) < need else "")
+        inst.extra["floor_sweep_note"] = note
+        if not note:  # measured from the road plane the sweep measured them from
+            inst.extra["floor_samples"] = (pts, plane)
 
 
 def adopt_footprint_sizes(instances: list[DefectInstance]) -> None:

@@ -84,23 +84,34 @@ def floor_samples(seq: Sequence, polygons: list, surface, cfg: FloorSweepConfig 
                   ) -> tuple[np.ndarray, list[str | None]]:
     """World points (N, 3) float64 on the floors of ``polygons`` (shapely polygons, world metres) measured by
     the sweep (module doc) on the road plane of ``surface`` (a :class:`~pavemap.geometry.HeightField`), and
-    per polygon why none was measured (None where some were)."""
+    per polygon why none was measured (None where some were). Each point lies below its polygon's road plane
+    (:func:`floor_sets`) by the floor's depth below the road as the images see it."""
+    sets = floor_sets(seq, polygons, surface, cfg)
+    return np.concatenate([np.zeros((0, 3))] + [p for p, _, _ in sets]), [w for _, w, _ in sets]
+
+
+def floor_sets(seq: Sequence, polygons: list, surface, cfg: FloorSweepConfig | None = None  # noqa: ANN001
+               ) -> list[tuple[np.ndarray, str | None, tuple[np.ndarray, np.ndarray] | None]]:
+    """Per polygon: its floor points (N, 3), why none (or None), and the road plane they are measured from
+    (point at the centroid (3,), unit upward normal (3,); None where no surface is around it)."""
     cfg = cfg or FloorSweepConfig()
     views = [v for f in seq.frames for v in f.views.values()]
     centres = np.array([np.asarray(v.T_world_cam)[:3, 3] for v in views]).reshape(-1, 3)
     images: dict[str, np.ndarray | None] = {}
-    out, why = [np.zeros((0, 3))], []
+    out = []
+    none = np.zeros((0, 3))
     for poly in polygons:
         plane = _road_plane(poly, surface, cfg)
         seen = [] if plane is None else _views_seeing(seq, views, centres, poly, plane[0], cfg)
         if plane is None or len(seen) < 2:
-            why.append("no road surface around it" if plane is None else
-                       f"no two views within {cfg.max_ref_range_m:g} m see it whole")
+            out.append((none, "no road surface around it" if plane is None else
+                        f"no two views within {cfg.max_ref_range_m:g} m see it whole", plane))
             continue
         vs = _partners(seen, plane[0], cfg)
         if len(vs) < cfg.min_views:
-            why.append(f"{len(vs)} of {cfg.min_views} views needed see it from within {cfg.max_view_angle_deg:g}"
-                       f" degrees of the nearest's direction and {cfg.max_range_ratio:g} times its range")
+            out.append((none, f"{len(vs)} of {cfg.min_views} views needed see it from within "
+                        f"{cfg.max_view_angle_deg:g} degrees of the nearest's direction and {cfg.max_range_ratio:g} "
+                        "times its range", plane))
             continue
         images = {v.image: images.get(v.image) for v in vs}  # the next pothole along the route shares most of them
         for v in vs:
@@ -109,13 +120,13 @@ def floor_samples(seq: Sequence, polygons: list, surface, cfg: FloorSweepConfig 
         row_m, sens = _floor_pixel_m(seq, vs[0], images[vs[0].image], plane), _parallax_per_cm(seq, vs, images,
                                                                                                  poly, plane)
         if row_m > cfg.max_floor_pixel_m or sens < cfg.min_px_per_cm:
-            why.append(f"images too coarse: a pixel covers {100 * row_m:.0f} cm of it and 1 cm of depth moves it "
-                       f"{sens:.2f} px (at most {100 * cfg.max_floor_pixel_m:g} cm, at least {cfg.min_px_per_cm:g} px)")
+            out.append((none, f"images too coarse: a pixel covers {100 * row_m:.0f} cm of it and 1 cm of depth moves "
+                        f"it {sens:.2f} px (at most {100 * cfg.max_floor_pixel_m:g} cm, at least "
+                        f"{cfg.min_px_per_cm:g} px)", plane))
             continue
         pts = _sweep_one(seq, vs, images, poly, plane, cfg)
-        why.append(None if len(pts) else "no view pair matched inside it")
-        out.append(pts)
-    return np.concatenate(out), why
+        out.append((pts, None if len(pts) else "no view pair matched inside it", plane))
+    return out
 
 
 def _floor_pixel_m(seq: Sequence, ref: View, img: np.ndarray, plane: tuple[np.ndarray, np.ndarray]) -> float:
@@ -375,4 +386,4 @@ def _best_depths(score: np.ndarray, deltas: np.ndarray, cfg: FloorSweepConfig) -
     return np.where(ok, med, 0.0), ok
 
 
-__all__ = ["FloorSweepConfig", "floor_samples"]
+__all__ = ["FloorSweepConfig", "floor_samples", "floor_sets"]

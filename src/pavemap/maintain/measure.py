@@ -82,7 +82,9 @@ def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarr
     ``FusionResult.instance_labels``; observed (ny, nx) bool or None (all observed); route (M, 2) from
     :func:`pavemap.maintain.chainage.route_polyline` or None (then no orientation); samples (N, 3) world
     height measurements (depth pixels, ground points) or None: where enough fall inside a pothole they
-    give its depth instead of the (smoother) surface.
+    give its depth instead of the (smoother) surface. A pothole's own ``extra["floor_samples"]`` (points (N, 3),
+    road plane (point, normal)) (the floor sweep's, :mod:`pavemap.maintain.floor_sweep`; taken out of
+    ``extra``) measure its floor wherever they lie, below that plane.
     Potholes get depth_max_mm, depth_mean_mm, volume_l, depth_sigma_mm, measurable, measure_note;
     cracks crack_length_m, orientation_deg, orientation_ok.
     """
@@ -100,7 +102,8 @@ def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarr
     for inst in instances:
         sl = slices[inst.id - 1] if 0 < inst.id <= len(slices) else None
         if inst.cls == POTHOLE:
-            inst.extra.update(_pothole(inst.id, sl, z, valid, obs, lab, grid, cfg, samples))
+            own = inst.extra.pop("floor_samples", None)  # the floor sweep's, for this pothole only
+            inst.extra.update(_pothole(inst.id, sl, z, valid, obs, lab, grid, cfg, samples, own))
         elif inst.cls in CRACK_CLASSES:
             inst.extra.update(_crack(inst, sl, lab, grid, route))
 
@@ -161,7 +164,7 @@ def robust_plane(x: np.ndarray, y: np.ndarray, z: np.ndarray, trim_k: float = 2.
 
 def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: np.ndarray | None,
              lab: np.ndarray | None, grid: tuple[float, float, float], cfg: MeasureConfig,
-             samples: np.ndarray | None = None) -> dict:
+             samples: np.ndarray | None = None, own: tuple | None = None) -> dict:
     """The pothole measures of instance ``iid`` (see module doc)."""
     if sl is None or lab is None:
         return _not_measurable("no footprint on the surface grid")
@@ -201,6 +204,11 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
         return _not_measurable(f"too few ring vertices agree on a plane ({n_in})")
     fj, fi = np.nonzero(fv)
     floor = max(2.0 * sigma, cfg.noise_floor_m)
+    if own is not None and len(own[0]) >= cfg.min_samples:  # the sweep's road: its ring, not the fused mask's
+        (p0, n) = own[1]
+        plane = np.array([p0[2], -n[0] / n[2], -n[1] / n[2]])
+        return _pothole_from_samples(np.asarray(own[0], np.float64), (float(p0[0]), float(p0[1])), plane, sigma,
+                                     n_in, int(fv.sum()) * res * res, cfg)
     if samples is not None and len(samples):
         # the samples inside the footprint: grid cells (j0 + row, i0 + col) of the crop
         si = np.rint((samples[:, 0] - grid[0]) / res).astype(np.int64) - i0
