@@ -131,6 +131,7 @@ def test_run_measures_pothole_depth_without_depth_only_when_asked(drives, tmp_pa
         out = tmp_path / f"run-{on}"
         pavemap.run(drives["full"], cfg, out, progress=False)
         layer = read_geojson(out / "defects.geojson")
+        assert not any(k in p for p in layer.properties for k in ("footprint_outline", "floor_samples"))
         notes[on] = [(p.get("depth_max_mm"), p.get("measure_note")) for p in layer.properties
                      if p.get("class_code", p.get("code")) == "D40" or p.get("cls") == 3]
     assert notes[False] and all(d is None and "floor not measured (no depth measurements)" in n
@@ -157,3 +158,27 @@ def test_views_whose_bonnet_hides_the_pothole_are_not_used(drives):
     finally:
         mask.unlink()
     assert len(pts) == 0 and all(w.startswith("no two views") for w in why), why
+
+
+def test_the_sweep_outline_is_the_finest_detections_footprint():
+    """instance_outlines: per pothole the footprint of its detection with the least road per pixel; none for
+    other classes or without a usable footprint."""
+    from shapely.geometry import box
+
+    from pavemap.fuse.footprint import instance_outlines
+    from pavemap.types import DefectInstance
+
+    def inst(iid: int, cls: int) -> DefectInstance:
+        return DefectInstance(id=iid, cls=cls, polygon=box(0, 0, 1, 1), severity_mean=0.5, severity_max=0.5,
+                              confidence=0.9, observations=3, probability=0.9, area_m2=1.0, length_m=1.0,
+                              centroid=(0.5, 0.5), priority="inspect", extra={})
+
+    quads = np.array([np.full((4, 2), float(k)) for k in range(5)])
+    quads[3] = np.nan  # no footprint (cut off by the image border)
+    insts = [inst(1, 3), inst(2, 3), inst(3, 0)]
+    inst_of = np.array([1, 1, 2, 2, 3])
+    ground_px = np.array([0.05, 0.02, 0.04, 0.01, 0.01])
+    instance_outlines(insts, inst_of, quads, ground_px)
+    assert insts[0].extra["footprint_outline"] == [[1.0, 1.0]] * 4  # 0.02 m per pixel beats 0.05
+    assert insts[1].extra["footprint_outline"] == [[2.0, 2.0]] * 4  # the finer one has no footprint
+    assert "footprint_outline" not in insts[2].extra  # a crack needs none
