@@ -25,10 +25,10 @@ It reads the images at their stored size: at 620 px wide (half KITTI's size) a p
 road at a pothole 7-8 m away and a centimetre of depth moves it by 0.11-0.15 px, below what the floor's texture
 can show; at 1241 px 3-5 cm and 0.22-0.48 px. Measured (``bench/floor_sweep_bench.py``, README "Pothole depth
 from the images"): on the full-size kitti-like drive, on the true surface and outlines, 3 of 10 potholes
-measured, 4.3 mm median error of the deepest point; plain road reads 6 mm (median, p90 13, max 20); in a run,
-on the mesh and the fused outlines, 3 of 7 measured, 7.5 / 17 mm, and severity agreement 0.87 against 0.93 by
-area. On the 2 Hz nuScenes-like drive few potholes have three views; on the real nuScenes clip (SfM poses)
-plain road read 31 mm (median). Off by default (``maintenance.floor_sweep``).
+measured, 4.3 mm median error of the deepest point; plain road reads 6 mm (median, p90 13, max 20); in a run
+(the finest detection's footprint as outline, the mesh's ring as road), 3 of 7 measured, 5.2 / 9.6 mm. On the
+2 Hz nuScenes-like drive few potholes have three views (3 of 11, 24 mm short); on the real nuScenes clip (SfM
+poses) plain road read 31 mm (median). Off by default (``maintenance.floor_sweep``).
 """
 
 from __future__ import annotations
