@@ -108,8 +108,12 @@ def main() -> None:
             child_cluster(Path(rest[0]))
         return
     work = a.data / "ceiling"
-    shutil.rmtree(work, ignore_errors=True)  # the bench's own scratch folder
+    mark = work / ".network-ceiling-scratch"
+    if work.exists() and not mark.is_file():
+        raise SystemExit(f"{work}: exists and this bench did not make it (no {mark.name}); move it or pick --data")
+    shutil.rmtree(work, ignore_errors=True)  # the bench's own scratch folder, marked as such
     work.mkdir(parents=True)
+    mark.touch()
     manifest = work / "manifest.yaml"
     manifest.write_text(json.dumps({"config": "kitti", "set": CONFIGS["default"], "drives": _drives(a.data)[:2]}))
     load = [subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()]

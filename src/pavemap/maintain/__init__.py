@@ -116,10 +116,11 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
     route = route_polyline(seq.trajectory()) if seq.frames else np.zeros((0, 2))
     outlines = {i.id: i.extra.pop("footprint_outline", None) for i in instances}  # fusion's, never exported
     if surface is not None:
+        mcfg = measure or MeasureConfig(surface_floor=False)
         measure_instances(instances, surface, labels, observed=observed, route=route if len(route) else None,
                           samples=_pothole_samples(instances, seq, samples, surface if floor_sweep else None,
-                                                   outlines),
-                          config=measure or MeasureConfig(surface_floor=False))
+                                                   outlines, mcfg.min_samples),
+                          config=mcfg)
     for inst in instances:  # the sweep's samples and reasons say so ("0 height samples inside it" does not)
         why, note = inst.extra.pop("floor_sweep_note", None), str(inst.extra.get("measure_note", ""))
         if why and note.startswith("floor not measured ("):
@@ -138,7 +139,8 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
 
 
 def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np.ndarray | None,
-                     surface=None, outlines: dict | None = None) -> np.ndarray | None:  # noqa: ANN001
+                     surface=None, outlines: dict | None = None,  # noqa: ANN001
+                     min_samples: int = 5) -> np.ndarray | None:
     """The height measurements that can measure a pothole's floor: where the drive has a depth layer, the mesh's
     samples plus the depth pixels under the potholes (their polygons' boxes, 0.7 m wider); without one None,
     and with ``surface`` each pothole gets its own floor samples from the images (:func:`_sweep_floors`).
@@ -151,7 +153,7 @@ def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np
     pots = [i for i in instances if i.cls == 3 and i.polygon is not None and not i.polygon.is_empty]
     if not any(v.depth for f in seq.frames for v in f.views.values()):
         if surface is not None:
-            _sweep_floors(pots, seq, surface, outlines or {})
+            _sweep_floors(pots, seq, surface, outlines or {}, min_samples)
         return None
     from pavemap.maintain.samples import depth_samples
 
@@ -161,29 +163,29 @@ def _pothole_samples(instances: list[DefectInstance], seq: Sequence, samples: np
     return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
 
 
-def _sweep_floors(pots: list[DefectInstance], seq: Sequence, surface, outlines: dict) -> None:  # noqa: ANN001
+def _sweep_floors(pots: list[DefectInstance], seq: Sequence, surface, outlines: dict,  # noqa: ANN001
+                  min_samples: int) -> None:
     """Each pothole's floor samples and their road plane from :func:`pavemap.maintain.floor_sweep.floor_sets` into
-    ``extra["floor_samples"]`` (measure takes them out), and the sweep's reason where it found none into
-    ``extra["floor_sweep_note"]``. The sweep's outline: the finest detection's footprint scaled to the inscribed
-    ellipse's area (:data:`pavemap.fuse.footprint.FILL`), else the fused polygon."""
+    ``extra["floor_samples"]`` (measure takes them out), and the sweep's reason where it found fewer than
+    ``min_samples`` into ``extra["floor_sweep_note"]``. The sweep's outline: the finest detection's footprint
+    scaled to the inscribed ellipse's area (:data:`pavemap.fuse.footprint.FILL`), else the fused polygon. One
+    sweep over all potholes, so neighbours along the route share their decoded images."""
     from shapely import affinity
     from shapely.geometry import Polygon
 
     from pavemap.fuse.footprint import FILL
     from pavemap.maintain.floor_sweep import floor_sets
-    from pavemap.maintain.measure import MeasureConfig
 
-    need = MeasureConfig().min_samples
+    k = float(np.sqrt(FILL[3]))
+    polys = []
     for inst in pots:
         quad = outlines.get(inst.id)
         poly = Polygon(quad) if quad else None
-        if poly is None or not poly.is_valid or poly.area <= 0:
-            poly = inst.polygon
-        else:
-            k = float(np.sqrt(FILL[3]))
-            poly = affinity.scale(poly, k, k, origin="centroid")
-        [(pts, why, plane)] = floor_sets(seq, [poly], surface)
-        note = why or (f"{len(pts)} floor-sweep cells inside it, {need} needed" if len(pts) < need else "")
+        ok = poly is not None and poly.is_valid and poly.area > 0
+        polys.append(affinity.scale(poly, k, k, origin="centroid") if ok else inst.polygon)
+    for inst, (pts, why, plane) in zip(pots, floor_sets(seq, polys, surface), strict=True):
+        note = why or (f"{len(pts)} floor-sweep cells inside it, {min_samples} needed" if len(pts) < min_samples
+                       else "")
         inst.extra["floor_sweep_note"] = note
         if not note:  # measured from the road plane the sweep measured them from
             inst.extra["floor_samples"] = (pts, plane)

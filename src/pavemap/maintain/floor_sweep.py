@@ -38,7 +38,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
+from pavemap.geometry.camera import pixel_rays, project
 from pavemap.io.sequence import load_gray
 from pavemap.types import Sequence, View
 
@@ -117,8 +119,8 @@ def floor_sets(seq: Sequence, polygons: list, surface, cfg: FloorSweepConfig | N
         for v in vs:
             if images[v.image] is None:
                 images[v.image] = load_gray(seq.path(v.image)).astype(np.float32)
-        row_m, sens = _floor_pixel_m(seq, vs[0], images[vs[0].image], plane), _parallax_per_cm(seq, vs, images,
-                                                                                                 poly, plane)
+        row_m = _floor_pixel_m(seq, vs[0], images[vs[0].image], plane)
+        sens = _parallax_per_cm(seq, vs, images, plane)
         if row_m > cfg.max_floor_pixel_m or sens < cfg.min_px_per_cm:
             out.append((none, f"images too coarse: a pixel covers {100 * row_m:.0f} cm of it and 1 cm of depth moves "
                         f"it {sens:.2f} px (at most {100 * cfg.max_floor_pixel_m:g} cm, at least "
@@ -129,39 +131,52 @@ def floor_sets(seq: Sequence, polygons: list, surface, cfg: FloorSweepConfig | N
     return out
 
 
+def _project(K: np.ndarray, T: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pavemap.geometry.camera.project` on numpy: pixels (N, 2) and camera depths (N,)."""
+    uv, z = project(K, T, torch.from_numpy(np.asarray(pts, np.float64).reshape(-1, 3)))
+    return uv.numpy(), z.numpy()
+
+
+def _rays(K: np.ndarray, T: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pavemap.geometry.camera.pixel_rays` on numpy: origins (N, 3), directions (N, 3)."""
+    o, d = pixel_rays(K, T, torch.from_numpy(np.asarray(uv, np.float64).reshape(-1, 2)))
+    return o.numpy(), d.numpy()
+
+
+def _on_plane(o: np.ndarray, d: np.ndarray, p0: np.ndarray, n: np.ndarray, depth: np.ndarray | float = 0.0
+              ) -> np.ndarray:
+    """(N, 3) where rays o + t d (N, 3) meet the plane through p0 with unit normal n, lowered by ``depth``
+    (m, along n; a scalar or (N,))."""
+    t = (n @ p0 - np.asarray(depth) - o @ n) / (d @ n)
+    return o + t[:, None] * d
+
+
 def _floor_pixel_m(seq: Sequence, ref: View, img: np.ndarray, plane: tuple[np.ndarray, np.ndarray]) -> float:
     """The road length (m) one reference pixel row covers at the polygon's centre: the plane points of the
     pixel there and of the one below it."""
     p0, n = plane
     T, K = np.asarray(ref.T_world_cam), _scaled_k(seq, ref, img)
-    uvw = (p0 - T[:3, 3]) @ T[:3, :3] @ K.T
-    uv = uvw[:2] / uvw[2]
-    rays = np.stack([[uv[0], uv[1], 1.0], [uv[0], uv[1] + 1.0, 1.0]]) @ np.linalg.inv(K).T @ T[:3, :3].T
-    pts = T[:3, 3] + rays * (float(n @ (p0 - T[:3, 3])) / (rays @ n))[:, None]
+    uv = _project(K, T, p0)[0][0]
+    pts = _on_plane(*_rays(K, T, np.stack([uv, uv + [0.0, 1.0]])), p0, n)
     return float(np.linalg.norm(pts[1] - pts[0]))
 
 
-def _parallax_per_cm(seq: Sequence, vs: list[View], images: dict[str, np.ndarray], poly,  # noqa: ANN001
+def _parallax_per_cm(seq: Sequence, vs: list[View], images: dict[str, np.ndarray],
                      plane: tuple[np.ndarray, np.ndarray]) -> float:
     """Pixels (at the stored size) that 1 cm of depth at the polygon's centre moves its image in a partner,
     relative to the reference, at best over the partners."""
     p0, n = plane
-    ref = vs[0]
-    T = np.asarray(ref.T_world_cam)
-    ray = p0 - T[:3, 3]  # the reference ray through the centre meets the plane at p0, the plane 1 cm lower here:
-    deeper = T[:3, 3] + ray * (float(n @ ray) - 0.01) / float(n @ ray)
+    c = np.asarray(vs[0].T_world_cam)[:3, 3]
+    deeper = _on_plane(c[None], (p0 - c)[None], p0, n, 0.01)[0]  # the reference ray through the centre, 1 cm down
     best = 0.0
     for v in vs[1:]:
-        T2, K2 = np.asarray(v.T_world_cam), _scaled_k(seq, v, images[v.image])
-        uv = (np.stack([p0, deeper]) - T2[:3, 3]) @ T2[:3, :3] @ K2.T
-        uv = uv[:, :2] / uv[:, 2:]
+        uv = _project(_scaled_k(seq, v, images[v.image]), np.asarray(v.T_world_cam), np.stack([p0, deeper]))[0]
         best = max(best, float(np.linalg.norm(uv[1] - uv[0])))
     return best
 
 
 def _road_plane(poly, surface, cfg: FloorSweepConfig) -> tuple[np.ndarray, np.ndarray] | None:  # noqa: ANN001
     """(point on the plane at the polygon's centroid (3,), unit upward normal (3,)) from the surface's ring."""
-    import torch
     from shapely import contains_xy
 
     from pavemap.maintain.measure import robust_plane
@@ -207,10 +222,9 @@ def _views_seeing(seq: Sequence, views: list[View], centres: np.ndarray, poly, p
         v = views[k]
         cam = seq.cameras[v.camera]
         T = np.asarray(v.T_world_cam)
-        pc = (corners - T[:3, 3]) @ T[:3, :3]
-        if (pc[:, 2] < 1.0).any():
+        uv, depth = _project(cam.K, T, corners)
+        if (depth < 1.0).any():
             continue
-        uv = pc[:, :2] / pc[:, 2:] * np.diag(cam.K)[:2] + cam.K[:2, 2]
         m = cfg.margin_px
         if (uv < m).any() or (uv[:, 0] > cam.width - 1 - m).any() or (uv[:, 1] > cam.height - 1 - m).any():
             continue
@@ -249,8 +263,7 @@ def _sweep_one(seq: Sequence, vs: list[View], images: dict[str, np.ndarray], pol
     Kr = _scaled_k(seq, ref, img_r)
     T = np.asarray(ref.T_world_cam)
     Rr, tr = T[:3, :3], T[:3, 3]
-    uv = (_box_corners(poly.buffer(cfg.ring_outer_m), p0, nW) - tr) @ Rr @ Kr.T  # the pothole and its ring
-    uv = uv[:, :2] / uv[:, 2:]
+    uv = _project(Kr, T, _box_corners(poly.buffer(cfg.ring_outer_m), p0, nW))[0]  # the pothole and its ring
     h, w = img_r.shape
     u0, v0 = np.maximum(np.floor(uv.min(0)).astype(int) - 8, 0)
     u1, v1 = np.minimum(np.ceil(uv.max(0)).astype(int) + 8, [w - 1, h - 1])
@@ -261,15 +274,13 @@ def _sweep_one(seq: Sequence, vs: list[View], images: dict[str, np.ndarray], pol
     depth, ok = _best_depths(score, deltas, cfg)
     ok, depth = (ok & seen).ravel(), depth.ravel()
     uu, vv = np.meshgrid(np.arange(u0, u1 + 1), np.arange(v0, v1 + 1))
-    rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], 1) @ np.linalg.inv(Kr).T  # (P, 3) camera
-    denom = rays @ n_c
-    at0 = rays * (float(n_c @ (Rr.T @ (p0 - tr))) / denom)[:, None] @ Rr.T + tr
+    o, d = _rays(Kr, T, np.stack([uu.ravel(), vv.ravel()], 1))  # (P, 3) world
+    at0 = _on_plane(o, d, p0, nW)
     ring = ok & contains_xy(poly.buffer(cfg.ring_outer_m), at0[:, 0], at0[:, 1]) & ~contains_xy(
         poly.buffer(cfg.ring_inner_m), at0[:, 0], at0[:, 1])
     keep = ok & contains_xy(poly, at0[:, 0], at0[:, 1])
     dk = depth[keep] - _road_offset(depth[ring], cfg)
-    d_c = (Rr.T @ (p0[None] - dk[:, None] * nW[None] - tr).T).T @ n_c  # (K,) plane offsets
-    pts = (rays[keep] * (d_c / denom[keep])[:, None]) @ Rr.T + tr
+    pts = _on_plane(o[keep], d[keep], p0, nW, dk)
     # the ray enters the polygon and meets the floor in its interior: a match too deep on the far wall puts its
     # point past the far rim, and a window before the near rim that takes in the dark floor is left out
     inset = max(cfg.interior_min_m, cfg.interior_share * float(np.sqrt(poly.area / np.pi)))
