@@ -121,12 +121,6 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
                           samples=_pothole_samples(instances, seq, samples, surface if floor_sweep else None,
                                                    outlines, mcfg.min_samples),
                           config=mcfg)
-    for inst in instances:  # the sweep's samples and reasons say so ("0 height samples inside it" does not)
-        why, note = inst.extra.pop("floor_sweep_note", None), str(inst.extra.get("measure_note", ""))
-        if why and note.startswith("floor not measured ("):
-            inst.extra["measure_note"] = f"floor not measured ({why})"
-        elif why is not None and note.startswith("from "):
-            inst.extra["measure_note"] = note.replace("height samples", "floor-sweep samples (images)")
     adopt_footprint_sizes(instances)
     assess_instances(instances, route, pol, lane_width_m)
     if len(route) == 0:

@@ -84,7 +84,8 @@ def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarr
     height measurements (depth pixels, ground points) or None: where enough fall inside a pothole they
     give its depth instead of the (smoother) surface. A pothole's own ``extra["floor_samples"]`` (points (N, 3),
     road plane (point, normal)) (the floor sweep's, :mod:`pavemap.maintain.floor_sweep`; taken out of
-    ``extra``) measure its floor wherever they lie, below that plane.
+    ``extra``) measure its floor wherever they lie, below that plane; its ``extra["floor_sweep_note"]`` says
+    why the sweep found none (taken out too).
     Potholes get depth_max_mm, depth_mean_mm, volume_l, depth_sigma_mm, measurable, measure_note;
     cracks crack_length_m, orientation_deg, orientation_ok.
     """
@@ -102,8 +103,9 @@ def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarr
     for inst in instances:
         sl = slices[inst.id - 1] if 0 < inst.id <= len(slices) else None
         if inst.cls == POTHOLE:
-            own = inst.extra.pop("floor_samples", None)  # the floor sweep's, for this pothole only
-            inst.extra.update(_pothole(inst.id, sl, z, valid, obs, lab, grid, cfg, samples, own))
+            own = inst.extra.pop("floor_samples", None)  # the floor sweep's, for this pothole only ...
+            why = inst.extra.pop("floor_sweep_note", None) or None  # ... or why it found none
+            inst.extra.update(_pothole(inst.id, sl, z, valid, obs, lab, grid, cfg, samples, own, why))
         elif inst.cls in CRACK_CLASSES:
             inst.extra.update(_crack(inst, sl, lab, grid, route))
 
@@ -164,7 +166,7 @@ def robust_plane(x: np.ndarray, y: np.ndarray, z: np.ndarray, trim_k: float = 2.
 
 def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: np.ndarray | None,
              lab: np.ndarray | None, grid: tuple[float, float, float], cfg: MeasureConfig,
-             samples: np.ndarray | None = None, own: tuple | None = None) -> dict:
+             samples: np.ndarray | None = None, own: tuple | None = None, own_why: str | None = None) -> dict:
     """The pothole measures of instance ``iid`` (see module doc)."""
     if sl is None or lab is None:
         return _not_measurable("no footprint on the surface grid")
@@ -208,7 +210,7 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
         (p0, n) = own[1]
         plane = np.array([p0[2], -n[0] / n[2], -n[1] / n[2]])
         return _pothole_from_samples(np.asarray(own[0], np.float64), (float(p0[0]), float(p0[1])), plane, sigma,
-                                     n_in, int(fv.sum()) * res * res, cfg)
+                                     n_in, int(fv.sum()) * res * res, cfg, "floor-sweep samples (images)")
     if samples is not None and len(samples):
         # the samples inside the footprint: grid cells (j0 + row, i0 + col) of the crop
         si = np.rint((samples[:, 0] - grid[0]) / res).astype(np.int64) - i0
@@ -226,6 +228,8 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
                 if s2 <= max(3.0 * sigma, 0.01):  # a ring on a kerb or a car's foot: the surface's ring stays
                     coef, sigma, n_in = c2, s2, int(inl2.sum())
             return _pothole_from_samples(samples[inside], centre, coef, sigma, n_in, int(fv.sum()) * res * res, cfg)
+    if own_why and not cfg.surface_floor:
+        return _not_measurable(f"floor not measured ({own_why})")
     if not cfg.surface_floor:
         n = 0 if samples is None or not len(samples) else int(inside.sum())
         return _not_measurable(f"floor not measured ({n} height samples inside it, {cfg.min_samples} needed)"
@@ -245,17 +249,18 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
 
 
 def _pothole_from_samples(pts: np.ndarray, centre: tuple[float, float], coef: np.ndarray, sigma: float, n_ring: int,
-                          foot_area: float, cfg: MeasureConfig) -> dict:
+                          foot_area: float, cfg: MeasureConfig, what: str = "height samples") -> dict:
     """Pothole measures from height samples pts (n, 3) inside its footprint, below the ring plane ``coef``
     (about ``centre``): depth_max the ``sample_quantile`` of their depths, depth_mean over those below the
-    noise floor, volume their mean depth (negative as 0) over the footprint area ``foot_area`` m²."""
+    noise floor, volume their mean depth (negative as 0) over the footprint area ``foot_area`` m²; the note
+    names them ``what``."""
     d = surface_at(coef, pts[:, 0] - centre[0], pts[:, 1] - centre[1]) - pts[:, 2]
     floor = max(2.0 * sigma, cfg.noise_floor_m)
     dent = d > floor
     spread = 1.4826 * float(np.median(np.abs(d - np.median(d)))) if len(d) > 1 else 0.0
     sig = math.sqrt(sigma * sigma * (1.0 + len(coef) / n_ring) + spread * spread / len(d))
     return {
-        "measurable": True, "measure_note": f"from {len(d)} height samples inside it",
+        "measurable": True, "measure_note": f"from {len(d)} {what} inside it",
         "depth_max_mm": round(max(float(np.quantile(d, cfg.sample_quantile)), 0.0) * 1000.0, 1),
         "depth_mean_mm": round(float(d[dent].mean()) * 1000.0, 1) if dent.any() else 0.0,
         "volume_l": round(float(np.clip(d, 0.0, None).mean()) * foot_area * 1000.0, 3),
