@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
 
 RESULTS = ROOT / "bench" / "results" / "network-ceiling.json"
+SCRATCH = "network-ceiling scratch"
 
 
 def _task(manifest: Path, k: int, out: Path) -> dict:
@@ -107,13 +108,13 @@ def main() -> None:
         else:
             child_cluster(Path(rest[0]))
         return
+    from pavemap.io.owned import check_replaceable, mark_written
+
     work = a.data / "ceiling"
-    mark = work / ".network-ceiling-scratch"
-    if work.exists() and not mark.is_file():
-        raise SystemExit(f"{work}: exists and this bench did not make it (no {mark.name}); move it or pick --data")
-    shutil.rmtree(work, ignore_errors=True)  # the bench's own scratch folder, marked as such
+    if work.exists():  # only the scratch folder a finished run of this bench marked as pavemap's
+        check_replaceable(work, SCRATCH, overwrite=True)
+        shutil.rmtree(work)
     work.mkdir(parents=True)
-    mark.touch()
     manifest = work / "manifest.yaml"
     manifest.write_text(json.dumps({"config": "kitti", "set": CONFIGS["default"], "drives": _drives(a.data)[:2]}))
     load = [subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()]
@@ -142,6 +143,7 @@ def main() -> None:
     finally:
         server.terminate()
         server.wait(timeout=30)
+    mark_written(work, SCRATCH)
     load.append(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     serial = rows["serial"]["wall_s"]
     # the batch's own seconds besides its drives (plan, register, network page): serial in every mode
