@@ -2,7 +2,7 @@
 
 The maintenance bench's drives (bench/maintenance_bench.py: kitti-like 40 frames at 10 Hz, nuScenes-like 14
 frames at 2 Hz, more defects than the presets), synthesized without depth at the images' full size (1241 x 376,
-1600 x 900) and, for kitti-like, at the bench's half size. Three rows per drive:
+1600 x 900) and, for kitti-like, at the bench's half size. Rows per drive:
 
 - ``method``: the sweep on the true surface and the true pothole outlines (the measuring method alone): per
   pothole the deepest point (the 0.99 quantile of the samples' depths below the ring plane, as the maintenance
@@ -12,7 +12,11 @@ frames at 2 Hz, more defects than the presets), synthesized without depth at the
   none (the same quantile);
 - ``run``: ``pavemap.run`` without depth and the maintenance stage with ``floor_sweep`` on and off, matched to
   the truth as the maintenance bench does: the depth errors, how many were measured and why not, severity
-  agreement.
+  agreement;
+- ``visibility`` (true outlines) and ``run.outlines_seen`` (the outlines the run swept): what the views the sweep
+  picks can see of each pothole's floor on the true surface (ray marching), with and without the near-rim rule
+  (``FloorSweepConfig.max_hidden_share``): the share all see, and how far the deepest point all see lies above
+  the truth's deepest.
 
     python bench/floor_sweep_bench.py [--data DIR] [--presets kitti-like nuscenes-like]
 """
@@ -83,6 +87,107 @@ def method_row(seq_dir: Path) -> dict:
     return {**_stats(errors), "potholes": len(rows), "not_measured": why_not, "rows": rows}
 
 
+def _visible(camera: np.ndarray, pts: np.ndarray, surface, reach_m: float = 3.0) -> np.ndarray:  # noqa: ANN001
+    """(N,) bool: the true surface leaves the ray from each point (N, 3) toward ``camera`` (3,) clear over its last
+    ``reach_m`` (1 cm steps, 2 mm of slack): no rim or wall between them."""
+    import torch
+
+    d = camera[None] - pts
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ray = pts[:, None, :] + np.arange(0.01, reach_m, 0.01)[None, :, None] * d[:, None, :]
+    z = surface.height_at(torch.from_numpy(ray[..., :2].reshape(-1, 2)).to(surface.heights.dtype))[0]
+    return ~(z.numpy().reshape(ray.shape[:2]) > ray[..., 2] + 0.002).any(1)
+
+
+def _floor_seen(seq, surface, outline, truth: dict) -> dict | None:  # noqa: ANN001
+    """What the views the sweep picks for ``outline`` (world polygon) can see of a true pothole's floor (``truth``:
+    a GeoJSON feature of ``truth/defects.geojson``), on the true ``surface``: for the views it would pick without
+    the near-rim rule (at least two, else None), each one's share of the floor (2 cm grid), the share all see, the
+    deepest point all see, the reference sees, and the views the rule keeps all see."""
+    import torch
+    from shapely import contains_xy
+    from shapely.geometry import shape
+
+    from pavemap.maintain.floor_sweep import FloorSweepConfig, _hidden_share, _partners, _road_plane, _views_seeing
+
+    cfg = FloorSweepConfig()
+    views = [v for f in seq.frames for v in f.views.values()]
+    centres = np.array([np.asarray(v.T_world_cam)[:3, 3] for v in views])
+    plane = _road_plane(outline, surface, cfg)
+    seen_by = [] if plane is None else _views_seeing(seq, views, centres, outline, plane[0], cfg)
+    near = _partners(seen_by, plane[0], cfg) if seen_by else []
+    if len(near) < 2:
+        return None
+    poly = shape(truth["geometry"])
+    x0, y0, x1, y1 = poly.bounds
+    X, Y = (a.ravel() for a in np.meshgrid(np.arange(x0, x1, 0.02), np.arange(y0, y1, 0.02)))
+    inside = contains_xy(poly, X, Y)
+    xy = np.stack([X[inside], Y[inside]], 1)
+    pts = np.c_[xy, surface.height_at(torch.from_numpy(xy).to(surface.heights.dtype))[0].numpy().astype(np.float64)]
+    depth = (plane[0] - pts) @ plane[1] * 1000.0
+    seen = np.stack([_visible(np.asarray(v.T_world_cam)[:3, 3], pts, surface) for v in near])
+    shares = [_hidden_share(v, outline, plane, cfg.hidden_depth_m) for v in near]
+    kept = np.array(shares) <= cfg.max_hidden_share
+
+    def deepest(mask: np.ndarray) -> float | None:
+        return round(float(depth[mask].max()), 1) if mask.any() else None
+    return {"id": truth["properties"]["id"], "truth_mm": round(1000 * truth["properties"]["depth_max_m"], 1),
+            "ranges_m": [round(float(np.linalg.norm(np.asarray(v.T_world_cam)[:3, 3] - plane[0])), 1) for v in near],
+            "hidden_share_5cm": [round(x, 2) for x in shares],
+            "seen_by_each": [round(float(m.mean()), 2) for m in seen],
+            "seen_by_all": round(float(seen.all(0).mean()), 2), "deepest_seen_by_all_mm": deepest(seen.all(0)),
+            "deepest_seen_by_reference_mm": deepest(seen[0]), "views_kept": int(kept.sum()),
+            "deepest_seen_by_kept_mm": deepest(seen[kept].all(0)) if kept.any() else None}
+
+
+def _seen_summary(rows: list[dict]) -> dict:
+    """Medians over the potholes with three views or more: the share of the floor all see, and how far the deepest
+    point all see (and the views the near-rim rule keeps see) lies above the truth's (mm)."""
+    three = [r for r in rows if len(r["ranges_m"]) >= 3]
+
+    def short(key: str) -> float | None:
+        v = [r["truth_mm"] - r[key] for r in three if r[key] is not None]
+        return round(float(np.median(v)), 1) if v else None
+    return {"potholes_with_2_views": len(rows), "with_3": len(three),
+            "median_seen_by_all": round(float(np.median([r["seen_by_all"] for r in three])), 2) if three else None,
+            "median_short_deepest_seen_by_all_mm": short("deepest_seen_by_all_mm"),
+            "median_short_deepest_seen_by_kept_mm": short("deepest_seen_by_kept_mm"), "rows": rows}
+
+
+def visibility_row(seq_dir: Path) -> dict:
+    """:func:`_floor_seen` for each true pothole on its true outline (the truth decides what a view can see)."""
+    from shapely.geometry import shape
+
+    from pavemap.io.sequence import read_sequence
+    from pavemap.io.truth import read_truth_height
+
+    seq, surface = read_sequence(seq_dir), read_truth_height(seq_dir)
+    feats = [f for f in json.loads((seq_dir / "truth" / "defects.geojson").read_text())["features"]
+             if f["properties"]["cls"] == 3]
+    rows = [_floor_seen(seq, surface, shape(f["geometry"]), f) for f in feats]
+    return _seen_summary([r for r in rows if r is not None])
+
+
+def _run_outlines_seen(seq_dir: Path, outlines: list) -> dict:
+    """:func:`_floor_seen` for the outlines a run swept, each matched to the true pothole it overlaps most."""
+    from shapely.geometry import shape
+
+    from pavemap.io.sequence import read_sequence
+    from pavemap.io.truth import read_truth_height
+
+    seq, surface = read_sequence(seq_dir), read_truth_height(seq_dir)
+    feats = [f for f in json.loads((seq_dir / "truth" / "defects.geojson").read_text())["features"]
+             if f["properties"]["cls"] == 3]
+    rows = []
+    for o in outlines:
+        over = [(o.intersection(shape(f["geometry"])).area, k) for k, f in enumerate(feats)]
+        best = max(over, default=(0.0, -1))
+        row = _floor_seen(seq, surface, o, feats[best[1]]) if best[0] > 0 else None
+        if row is not None:
+            rows.append(row)
+    return _seen_summary(rows)
+
+
 def flat_road_row(seq_dir: Path) -> dict:
     import torch
     from shapely.geometry import Point, shape
@@ -119,15 +224,27 @@ def flat_road_row(seq_dir: Path) -> dict:
 
 
 def run_rows(seq_dir: Path, data: Path, name: str, preset: str) -> dict:
-    out = {}
+    import pavemap.maintain.floor_sweep as sweep
+
+    out, swept = {}, []
+    sweep_sets = sweep.floor_sets
+
+    def keep_outlines(seq, polygons, surface, cfg=None):  # noqa: ANN001, ANN202
+        swept.extend(polygons)
+        return sweep_sets(seq, polygons, surface, cfg)
     for on in (False, True):
         t = time.perf_counter()
-        inst, on_truth, _, secs = map_and_measure(seq_dir, data / f"run-{name}", preset, "cpu", floor_sweep=on)
+        sweep.floor_sets = keep_outlines  # what the maintenance stage sweeps: the outlines, for the visibility rows
+        try:
+            inst, on_truth, _, secs = map_and_measure(seq_dir, data / f"run-{name}", preset, "cpu", floor_sweep=on)
+        finally:
+            sweep.floor_sets = sweep_sets
         s = summarise(compare(inst, on_truth, seq_dir)["rows"])
         out["floor_sweep" if on else "area_fallback"] = {
             k: s[k] for k in ("potholes_matched", "potholes_measured", "not_measurable", "depth_abs_err_mm",
                               "depth_signed_err_mm_median", "severity_pairs", "severity_agreement")} | {
             "seconds": {**secs, "total": round(time.perf_counter() - t, 1)}}
+    out["outlines_seen"] = _run_outlines_seen(seq_dir, swept)
     return out
 
 
@@ -153,7 +270,7 @@ def main() -> None:
             if not (seq_dir / "sequence.json").is_file():
                 synthesize(seq_dir, preset, seed=0, depth="none", progress=False,
                            **{**DRIVES[preset], "scale": scale}, **WORLD)
-            row = {"scale": scale, "method": method_row(seq_dir)}
+            row = {"scale": scale, "method": method_row(seq_dir), "visibility": visibility_row(seq_dir)}
             if scale == 1.0:
                 row["flat_road"] = flat_road_row(seq_dir)
                 row["run"] = run_rows(seq_dir, a.data, name, preset)

@@ -40,8 +40,8 @@ def _deepest_mm(pts: np.ndarray, poly, surface) -> float:
 
 
 def test_full_size_frames_measure_the_floor_to_a_centimetre(drives):
-    """On the true surface and outlines, the deepest point of every pothole a near view sees whole is within
-    12 mm of the truth (median within 8 mm), and the rest say why they were not measured."""
+    """On the true surface and outlines, the deepest point of every pothole near views see whole and past its
+    near rim is within 12 mm of the truth (median within 8 mm), and the rest say why they were not measured."""
     root = drives["full"]
     seq, surface = read_sequence(root), read_truth_height(root)
     errors, reasons = [], []
@@ -53,10 +53,41 @@ def test_full_size_frames_measure_the_floor_to_a_centimetre(drives):
             continue
         assert len(pts) >= 5
         errors.append(_deepest_mm(pts, poly, surface) - 1000.0 * props["depth_max_m"])
-    assert len(errors) >= 3, reasons
+    assert len(errors) >= 2, reasons
     assert max(abs(e) for e in errors) <= 12.0, errors
     assert float(np.median(np.abs(errors))) <= 8.0, errors
-    assert all(r.startswith(("no two views", "images too coarse", "2 of 3 views")) for r in reasons), reasons
+    assert all(r.startswith(("no two views", "images too coarse", "2 of 3 views", "its near rim hides"))
+               for r in reasons), reasons
+
+
+def test_hidden_share_is_the_strip_behind_the_near_rim():
+    """A camera h above the road at range D sees a floor d deep only from d D / h past the near rim: the share of
+    a polygon E long toward the camera that this strip covers."""
+    from types import SimpleNamespace
+
+    from shapely.geometry import box
+
+    from pavemap.maintain.floor_sweep import _hidden_share
+
+    h, D, E, d = 1.5, 9.0, 1.2, 0.05
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, h]
+    plane = (np.array([D, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    share = _hidden_share(SimpleNamespace(T_world_cam=T), box(D - E / 2, -0.3, D + E / 2, 0.3), plane, d)
+    assert share == pytest.approx(d * D / h / E)
+
+
+def test_a_floor_the_views_cannot_see_past_the_near_rim_is_not_measured(drives):
+    """The near-rim rule: a pothole measured with the defaults is not measured when the floor that must be seen
+    lies so deep that the rim hides its middle from the views, and says so."""
+    root = drives["full"]
+    seq, surface = read_sequence(root), read_truth_height(root)
+    polys = [p for p, _ in _potholes(root)]
+    _, why = floor_samples(seq, polys, surface)
+    measured = [p for p, w in zip(polys, why, strict=True) if w is None]
+    assert measured, why
+    pts, why = floor_samples(seq, measured[:1], surface, FloorSweepConfig(hidden_depth_m=0.5))
+    assert len(pts) == 0 and why[0].startswith("its near rim hides the middle of a 50 cm deep floor from"), why
 
 
 def test_half_size_frames_are_too_coarse_and_say_so(drives):

@@ -8,9 +8,11 @@ pothole polygon:
 1. the road plane around it: the surface's heights on a ring 0.25-0.65 m outside the polygon, a robust plane;
 2. the reference view: the nearest view (any camera) that sees the polygon's whole box, within
    ``max_ref_range_m``; the partners: the next nearest ``partners`` views that see it from within
-   ``max_view_angle_deg`` of the reference's direction and at most ``max_range_ratio`` times as far;
-   too coarse images (a pixel row longer than ``max_floor_pixel_m`` of road, or under ``min_px_per_cm`` of
-   parallax per cm of depth) are not swept, and say so;
+   ``max_view_angle_deg`` of the reference's direction and at most ``max_range_ratio`` times as far; of them
+   only those whose view of a floor ``hidden_depth_m`` deep is not hidden by the near rim over more than
+   ``max_hidden_share`` of the polygon's length (a flat, far view sees only the far wall); too coarse images
+   (a pixel row longer than ``max_floor_pixel_m`` of road, or under ``min_px_per_cm`` of parallax per cm of
+   depth) are not swept, and say so;
 3. for each hypothesis depth δ (the road plane lowered by δ), each partner is warped onto the reference by
    the plane's homography, and each reference pixel of the pothole and its ring scores the zero-mean NCC of
    a ``window`` (rows x cols, wide: across the road the texture is not foreshortened), averaged over the
@@ -23,12 +25,10 @@ pothole polygon:
 
 It reads the images at their stored size: at 620 px wide (half KITTI's size) a pixel row covers 8-11 cm of the
 road at a pothole 7-8 m away and a centimetre of depth moves it by 0.11-0.15 px, below what the floor's texture
-can show; at 1241 px 3-5 cm and 0.22-0.48 px. Measured (``bench/floor_sweep_bench.py``, README "Pothole depth
-from the images"): on the full-size kitti-like drive, on the true surface and outlines, 3 of 10 potholes
-measured, 4.3 mm median error of the deepest point; plain road reads 6 mm (median, p90 13, max 20); in a run
-(the finest detection's footprint as outline, the mesh's ring as road), 3 of 7 measured, 5.2 / 9.6 mm. On the
-2 Hz nuScenes-like drive few potholes have three views (3 of 11, 24 mm short); on the real nuScenes clip (SfM
-poses) plain road read 31 mm (median). Off by default (``maintenance.floor_sweep``).
+can show; at 1241 px 3-5 cm and 0.22-0.48 px. What it measures against the truth and on the real samples:
+``bench/floor_sweep_bench.py`` and the README's "Pothole depth from the images". Off by default
+(``maintenance.floor_sweep``): few potholes meet its conditions, and on the real nuScenes clip plain road read
+as a 3 cm dent.
 """
 
 from __future__ import annotations
@@ -58,6 +58,12 @@ class FloorSweepConfig:
     # the reference and its partners: with one partner a wrong match has no second view to disagree with it (on
     # plain road the nuScenes-like drive read up to 0.11 m of depth with 2 views, 28 mm with 3)
     min_views: int = 3
+    # Each view must see the floor where it matters: a farther, flatter view sees a floor only beyond a strip behind
+    # the near rim (depth x range / camera height), and averaging its matches in reads the floor short (the README's
+    # "Pothole depth from the images"). A view is used only if it sees the middle of the polygon (the rim hides at
+    # most half its length) on a floor 5 cm deep, FHWA's medium / high boundary.
+    hidden_depth_m: float = 0.05
+    max_hidden_share: float = 0.5
     depth_min_m: float = -0.03  # hypotheses: the road plane lowered by depth_min .. depth_max in depth_step
     depth_max_m: float = 0.15
     depth_step_m: float = 0.0025
@@ -109,11 +115,16 @@ def floor_sets(seq: Sequence, polygons: list, surface, cfg: FloorSweepConfig | N
             out.append((none, "no road surface around it" if plane is None else
                         f"no two views within {cfg.max_ref_range_m:g} m see it whole", plane))
             continue
-        vs = _partners(seen, plane[0], cfg)
-        if len(vs) < cfg.min_views:
-            out.append((none, f"{len(vs)} of {cfg.min_views} views needed see it from within "
+        near = _partners(seen, plane[0], cfg)
+        vs = [v for v in near if _hidden_share(v, poly, plane, cfg.hidden_depth_m) <= cfg.max_hidden_share]
+        if len(near) < cfg.min_views:
+            out.append((none, f"{len(near)} of {cfg.min_views} views needed see it from within "
                         f"{cfg.max_view_angle_deg:g} degrees of the nearest's direction and {cfg.max_range_ratio:g} "
                         "times its range", plane))
+            continue
+        if len(vs) < cfg.min_views:
+            out.append((none, f"its near rim hides the middle of a {100 * cfg.hidden_depth_m:g} cm deep floor from "
+                        f"{len(near) - len(vs)} of its {len(near)} views ({cfg.min_views} needed that see it)", plane))
             continue
         images = {v.image: images.get(v.image) for v in vs}  # the next pothole along the route shares most of them
         for v in vs:
@@ -236,6 +247,18 @@ def _views_seeing(seq: Sequence, views: list[View], centres: np.ndarray, poly, p
                 continue
         seen.append((float(dist[k]), v))
     return seen if seen and seen[0][0] <= cfg.max_ref_range_m else []
+
+
+def _hidden_share(v: View, poly, plane: tuple[np.ndarray, np.ndarray], depth_m: float) -> float:  # noqa: ANN001
+    """The share of the polygon's length along the view's direction that its near rim hides from ``v`` on a floor
+    ``depth_m`` below the road plane (steep walls): a view at range D and height h above the road sees such a floor
+    only from depth_m * D / h past the rim."""
+    p0, n = plane
+    c = np.asarray(v.T_world_cam)[:3, 3]
+    along = p0[:2] - c[:2]
+    dist = float(np.linalg.norm(along))
+    extent = np.asarray(poly.exterior.coords)[:, :2] @ (along / dist)
+    return depth_m * dist / max(float((c - p0) @ n), 1e-6) / max(float(extent.max() - extent.min()), 1e-6)
 
 
 def _partners(seen: list[tuple[float, View]], p0: np.ndarray, cfg: FloorSweepConfig) -> list[View]:
