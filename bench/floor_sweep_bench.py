@@ -19,6 +19,10 @@ frames at 2 Hz, more defects than the presets), synthesized without depth at the
   the truth's deepest.
 
     python bench/floor_sweep_bench.py [--data DIR] [--presets kitti-like nuscenes-like]
+        [--real kitti SEQ MESH --real nuscenes-clip SEQ MESH]
+
+``--real``: plain-road disks on a real drive (``real_road_row``); SEQ from ``pavemap import``, MESH from
+``pavemap reconstruct`` (the README's "Real KITTI sample" and "Real nuScenes clip" give both commands).
 """
 
 from __future__ import annotations
@@ -52,6 +56,11 @@ def _stats(errors: list[float]) -> dict:
             "signed_median_mm": round(float(np.median(errors)), 1) if len(a) else None}
 
 
+def _reason(why: str) -> str:
+    """A reason without its figures, for counting."""
+    return why.split(":")[0].split(" from ")[0]
+
+
 def _deepest_mm(pts: np.ndarray, poly, surface) -> float:  # noqa: ANN001
     from pavemap.maintain.floor_sweep import FloorSweepConfig, _road_plane
 
@@ -76,7 +85,7 @@ def method_row(seq_dir: Path) -> dict:
         poly = shape(f["geometry"])
         pts, why = floor_samples(seq, [poly], surface)
         if why[0] is not None:
-            key = why[0].split(":")[0]
+            key = _reason(why[0])
             why_not[key] = why_not.get(key, 0) + 1
             rows.append({"id": p["id"], "truth_mm": round(1000 * p["depth_max_m"], 1), "why_not": why[0]})
             continue
@@ -223,6 +232,37 @@ def flat_road_row(seq_dir: Path) -> dict:
     return {**_stats(readings), "disks": tried, "measured": len(readings)}
 
 
+def real_road_row(seq_dir: Path, mesh_dir: Path) -> dict:
+    """Real frames have no truth, but plain road has no depth: 0.3 m disks 5-9 m ahead of every third frame's first
+    camera (1.5 m aside, or straight ahead at 9 m), on a stage-1 mesh's surface: why each was not measured, and
+    the depth the sweep reads on the measured ones (the maintenance stage's quantile)."""
+    from shapely.geometry import Point
+
+    from pavemap.io.sequence import read_sequence
+    from pavemap.maintain.floor_sweep import floor_sets
+    from pavemap.mesh import load_mesh
+
+    seq, surface = read_sequence(seq_dir), load_mesh(mesh_dir).surface
+    cam = sorted(seq.cameras)[0]
+    disks = []
+    for fr in seq.frames[::3]:
+        T = np.asarray(fr.views[cam].T_world_cam)
+        fwd = T[:3, 2] / np.linalg.norm(T[:2, 2])
+        left = np.array([-fwd[1], fwd[0], 0.0])
+        for ahead, side in ((5.0, 1.5), (5.0, -1.5), (7.0, 1.5), (7.0, -1.5), (9.0, 0.0)):
+            c = T[:3, 3] + ahead * fwd + side * left
+            disks.append(Point(c[0], c[1]).buffer(0.3))
+    why_not, readings = {}, []
+    for pts, why, plane in floor_sets(seq, disks, surface):
+        if why is None and len(pts) >= 5:
+            readings.append(float(np.quantile((plane[0] - pts) @ plane[1], 0.99)) * 1000.0)
+            continue
+        key = _reason(why or "fewer than 5 cells")
+        why_not[key] = why_not.get(key, 0) + 1
+    return {**_stats(readings), "disks": len(disks), "image_size": [seq.cameras[cam].width, seq.cameras[cam].height],
+            "not_measured": why_not}
+
+
 def run_rows(seq_dir: Path, data: Path, name: str, preset: str) -> dict:
     import pavemap.maintain.floor_sweep as sweep
 
@@ -252,7 +292,9 @@ def main() -> None:
     from pavemap.synth import synthesize
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--presets", nargs="+", default=list(SIZES))
+    ap.add_argument("--presets", nargs="*", default=list(SIZES))
+    ap.add_argument("--real", nargs=3, action="append", default=[], metavar=("NAME", "SEQUENCE", "MESH"),
+                    help="a real sequence (pavemap import), its stage-1 mesh (pavemap reconstruct): plain-road disks")
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("PAVEMAP_BENCH_DATA", "/tmp/pavemap-bench"))
                     / "floor-sweep")
     ap.add_argument("--results", type=Path, default=RESULTS)
@@ -277,6 +319,9 @@ def main() -> None:
             out["drives"][name] = row
             print(name, json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "rows"} if isinstance(v, dict)
                                         else v) for k, v in row.items()}), flush=True)
+    for name, seq_dir, mesh_dir in a.real:
+        out.setdefault("real", {})[name] = real_road_row(Path(seq_dir), Path(mesh_dir))
+        print(name, json.dumps(out["real"][name]), flush=True)
     out["uptime_end"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     write_results(a.results, out)
 
