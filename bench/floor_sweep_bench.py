@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -58,7 +59,7 @@ def _stats(errors: list[float]) -> dict:
 
 def _reason(why: str) -> str:
     """A reason without its figures, for counting."""
-    return why.split(":")[0].split(" from ")[0]
+    return re.sub(r" from \d+ of its \d+ views.*", "", why.split(":")[0])
 
 
 def _deepest_mm(pts: np.ndarray, poly, surface) -> float:  # noqa: ANN001
