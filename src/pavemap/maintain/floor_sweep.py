@@ -253,11 +253,13 @@ def _hidden_share(v: View, poly, plane: tuple[np.ndarray, np.ndarray], depth_m: 
     """The share of the polygon's length along the view's direction that its near rim hides from ``v`` on a floor
     ``depth_m`` below the road plane (steep walls): a view at range D and height h above the road sees such a floor
     only from depth_m * D / h past the rim."""
+    from shapely import get_coordinates
+
     p0, n = plane
     c = np.asarray(v.T_world_cam)[:3, 3]
     along = p0[:2] - c[:2]
-    dist = float(np.linalg.norm(along))
-    extent = np.asarray(poly.exterior.coords)[:, :2] @ (along / dist)
+    dist = max(float(np.linalg.norm(along)), 1e-6)
+    extent = get_coordinates(poly) @ (along / dist)  # any polygon: a fused one may come in parts
     return depth_m * dist / max(float((c - p0) @ n), 1e-6) / max(float(extent.max() - extent.min()), 1e-6)
 
 
