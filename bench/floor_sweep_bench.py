@@ -105,8 +105,9 @@ def _visible(camera: np.ndarray, pts: np.ndarray, surface, reach_m: float = 3.0)
     d = camera[None] - pts
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     ray = pts[:, None, :] + np.arange(0.01, reach_m, 0.01)[None, :, None] * d[:, None, :]
-    z = surface.height_at(torch.from_numpy(ray[..., :2].reshape(-1, 2)).to(surface.heights.dtype))[0]
-    return ~(z.numpy().reshape(ray.shape[:2]) > ray[..., 2] + 0.002).any(1)
+    z, on = surface.height_at(torch.from_numpy(ray[..., :2].reshape(-1, 2)).to(surface.heights.dtype))
+    above = (z.numpy().reshape(ray.shape[:2]) > ray[..., 2] + 0.002) & on.numpy().reshape(ray.shape[:2])
+    return ~above.any(1)
 
 
 def _floor_seen(seq, surface, outline, truth: dict) -> dict | None:  # noqa: ANN001
@@ -158,7 +159,7 @@ def _seen_summary(rows: list[dict]) -> dict:
     def short(key: str) -> float | None:
         v = [r["truth_mm"] - r[key] for r in three if r[key] is not None]
         return round(float(np.median(v)), 1) if v else None
-    return {"potholes_with_2_views": len(rows), "with_3": len(three),
+    return {"potholes_with_2_or_more_views": len(rows), "with_3_or_more": len(three),
             "median_seen_by_all": round(float(np.median([r["seen_by_all"] for r in three])), 2) if three else None,
             "median_short_deepest_seen_by_all_mm": short("deepest_seen_by_all_mm"),
             "median_short_deepest_seen_by_kept_mm": short("deepest_seen_by_kept_mm"), "rows": rows}
@@ -179,7 +180,8 @@ def visibility_row(seq_dir: Path) -> dict:
 
 
 def _run_outlines_seen(seq_dir: Path, outlines: list) -> dict:
-    """:func:`_floor_seen` for the outlines a run swept, each matched to the true pothole it overlaps most."""
+    """:func:`_floor_seen` for the outlines a run swept, each matched to the true pothole it overlaps most (the
+    first outline of each; one that overlaps none is counted as ``unmatched``)."""
     from shapely.geometry import shape
 
     from pavemap.io.sequence import read_sequence
@@ -188,14 +190,20 @@ def _run_outlines_seen(seq_dir: Path, outlines: list) -> dict:
     seq, surface = read_sequence(seq_dir), read_truth_height(seq_dir)
     feats = [f for f in json.loads((seq_dir / "truth" / "defects.geojson").read_text())["features"]
              if f["properties"]["cls"] == 3]
-    rows = []
+    rows, matched, unmatched = [], set(), 0
     for o in outlines:
-        over = [(o.intersection(shape(f["geometry"])).area, k) for k, f in enumerate(feats)]
-        best = max(over, default=(0.0, -1))
-        row = _floor_seen(seq, surface, o, feats[best[1]]) if best[0] > 0 else None
+        area, k = max(((o.intersection(shape(f["geometry"])).area, k) for k, f in enumerate(feats)),
+                      default=(0.0, -1))
+        if area <= 0:
+            unmatched += 1
+            continue
+        if k in matched:
+            continue
+        matched.add(k)
+        row = _floor_seen(seq, surface, o, feats[k])
         if row is not None:
             rows.append(row)
-    return _seen_summary(rows)
+    return {**_seen_summary(rows), "unmatched": unmatched}
 
 
 def flat_road_row(seq_dir: Path) -> dict:
@@ -247,6 +255,8 @@ def real_road_row(seq_dir: Path, mesh_dir: Path) -> dict:
     cam = sorted(seq.cameras)[0]
     disks = []
     for fr in seq.frames[::3]:
+        if cam not in fr.views:
+            continue
         T = np.asarray(fr.views[cam].T_world_cam)
         fwd = T[:3, 2] / np.linalg.norm(T[:2, 2])
         left = np.array([-fwd[1], fwd[0], 0.0])
@@ -275,7 +285,8 @@ def run_rows(seq_dir: Path, data: Path, name: str, preset: str) -> dict:
         return sweep_sets(seq, polygons, surface, cfg)
     for on in (False, True):
         t = time.perf_counter()
-        sweep.floor_sets = keep_outlines  # what the maintenance stage sweeps: the outlines, for the visibility rows
+        if on:  # what the maintenance stage sweeps: the outlines, for the visibility rows
+            sweep.floor_sets = keep_outlines
         try:
             inst, on_truth, _, secs = map_and_measure(seq_dir, data / f"run-{name}", preset, "cpu", floor_sweep=on)
         finally:

@@ -26,9 +26,8 @@ pothole polygon:
 It reads the images at their stored size: at 620 px wide (half KITTI's size) a pixel row covers 8-11 cm of the
 road at a pothole 7-8 m away and a centimetre of depth moves it by 0.11-0.15 px, below what the floor's texture
 can show; at 1241 px 3-5 cm and 0.22-0.48 px. What it measures against the truth and on the real samples:
-``bench/floor_sweep_bench.py`` and the README's "Pothole depth from the images". Off by default
-(``maintenance.floor_sweep``): few potholes meet its conditions, and on the real nuScenes clip plain road read
-as a 3 cm dent.
+``bench/floor_sweep_bench.py`` and the README's "Pothole depth from the images"; why it is off by default
+(``maintenance.floor_sweep``) is there too.
 """
 
 from __future__ import annotations
@@ -116,13 +115,13 @@ def floor_sets(seq: Sequence, polygons: list, surface, cfg: FloorSweepConfig | N
                         f"no two views within {cfg.max_ref_range_m:g} m see it whole", plane))
             continue
         near = _partners(seen, plane[0], cfg)
-        vs = [v for v in near if _hidden_share(v, poly, plane, cfg.hidden_depth_m) <= cfg.max_hidden_share]
         if len(near) < cfg.min_views:
             out.append((none, f"{len(near)} of {cfg.min_views} views needed see it from within "
                         f"{cfg.max_view_angle_deg:g} degrees of the nearest's direction and {cfg.max_range_ratio:g} "
                         "times its range", plane))
             continue
-        if len(vs) < cfg.min_views:
+        vs = [v for v in near if _hidden_share(v, poly, plane, cfg.hidden_depth_m) <= cfg.max_hidden_share]
+        if len(vs) < cfg.min_views or vs[0] is not near[0]:  # the partners were chosen around the nearest
             out.append((none, f"its near rim hides the middle of a {100 * cfg.hidden_depth_m:g} cm deep floor from "
                         f"{len(near) - len(vs)} of its {len(near)} views ({cfg.min_views} needed that see it)", plane))
             continue
@@ -252,14 +251,14 @@ def _views_seeing(seq: Sequence, views: list[View], centres: np.ndarray, poly, p
 def _hidden_share(v: View, poly, plane: tuple[np.ndarray, np.ndarray], depth_m: float) -> float:  # noqa: ANN001
     """The share of the polygon's length along the view's direction that its near rim hides from ``v`` on a floor
     ``depth_m`` below the road plane (steep walls): a view at range D and height h above the road sees such a floor
-    only from depth_m * D / h past the rim."""
-    from shapely import get_coordinates
-
+    only from depth_m * D / h past the rim. A pothole fused from parts: its largest part, whose own near rim
+    hides its floor."""
     p0, n = plane
     c = np.asarray(v.T_world_cam)[:3, 3]
     along = p0[:2] - c[:2]
     dist = max(float(np.linalg.norm(along)), 1e-6)
-    extent = get_coordinates(poly) @ (along / dist)  # any polygon: a fused one may come in parts
+    part = max(getattr(poly, "geoms", [poly]), key=lambda g: g.area)
+    extent = np.asarray(part.exterior.coords)[:, :2] @ (along / dist)
     return depth_m * dist / max(float((c - p0) @ n), 1e-6) / max(float(extent.max() - extent.min()), 1e-6)
 
 
