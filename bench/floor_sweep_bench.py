@@ -97,17 +97,20 @@ def method_row(seq_dir: Path) -> dict:
     return {**_stats(errors), "potholes": len(rows), "not_measured": why_not, "rows": rows}
 
 
-def _visible(camera: np.ndarray, pts: np.ndarray, surface, reach_m: float = 3.0) -> np.ndarray:  # noqa: ANN001
-    """(N,) bool: the true surface leaves the ray from each point (N, 3) toward ``camera`` (3,) clear over its last
-    ``reach_m`` (1 cm steps, 2 mm of slack): no rim or wall between them."""
+def _visible(camera: np.ndarray, pts: np.ndarray, surface) -> np.ndarray:  # noqa: ANN001
+    """(N,) bool: the ray from ``camera`` (3,) toward each surface point (N, 3) meets the true surface first at that
+    point (within 2 mm of height), not on a rim or wall before it (the project's ray / height-field march)."""
     import torch
 
-    d = camera[None] - pts
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    ray = pts[:, None, :] + np.arange(0.01, reach_m, 0.01)[None, :, None] * d[:, None, :]
-    z, on = surface.height_at(torch.from_numpy(ray[..., :2].reshape(-1, 2)).to(surface.heights.dtype))
-    above = (z.numpy().reshape(ray.shape[:2]) > ray[..., 2] + 0.002) & on.numpy().reshape(ray.shape[:2])
-    return ~above.any(1)
+    from pavemap.geometry.heightfield import intersect_rays
+
+    d = pts - camera[None]
+    dist = np.linalg.norm(d, axis=1)
+    dt = surface.heights.dtype
+    hit = intersect_rays(surface, torch.from_numpy(np.repeat(camera[None], len(pts), 0)).to(dt),
+                         torch.from_numpy(d / dist[:, None]).to(dt), max_dist=float(dist.max()) + 0.5)
+    slack = 0.002 / np.maximum(np.abs(d[:, 2]) / dist, 1e-3)  # 2 mm of height, along a grazing ray
+    return hit.hit.numpy() & (hit.lam.double().numpy() >= dist - slack)
 
 
 def _floor_seen(seq, surface, outline, truth: dict) -> dict | None:  # noqa: ANN001
@@ -317,6 +320,9 @@ def main() -> None:
            **machine_entry(), "commit": commit,
            "uptime_start": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
            "targets_mm": {"median": 10.0, "p90": 20.0}, "drives": {}}
+    for name, seq_dir, mesh_dir in a.real:  # first: a wrong path ends the bench before the synthetic drives
+        out.setdefault("real", {})[name] = real_road_row(Path(seq_dir), Path(mesh_dir))
+        print(name, json.dumps(out["real"][name]), flush=True)
     for preset in a.presets:
         for scale in SIZES[preset]:
             name = f"{preset}-x{scale:g}"
@@ -331,12 +337,14 @@ def main() -> None:
             out["drives"][name] = row
             print(name, json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "rows"} if isinstance(v, dict)
                                         else v) for k, v in row.items()}), flush=True)
-    for name, seq_dir, mesh_dir in a.real:
-        out.setdefault("real", {})[name] = real_road_row(Path(seq_dir), Path(mesh_dir))
-        print(name, json.dumps(out["real"][name]), flush=True)
     out["uptime_end"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     write_results(a.results, out)
 
 
 if __name__ == "__main__":
-    main()
+    from pavemap.errors import PavemapError, SequenceError
+
+    try:
+        main()
+    except (PavemapError, SequenceError) as e:  # a folder that is not a sequence or a mesh: its path, no traceback
+        sys.exit(f"floor_sweep_bench: {e}")

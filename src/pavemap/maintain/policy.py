@@ -403,9 +403,8 @@ class MaintenanceConfig:
     - ``lane_width_m``: lane width for the lane position; None: the policy's ``lanes.lane_width_m``;
     - ``floor_sweep``: without a depth layer, measure potholes' floors by a multi-view sweep of the images
       around each (:mod:`pavemap.maintain.floor_sweep`; full-size images); False (default): their depth is not
-      measured without depth. Off by default: on full-size synthetic drives it measures a minority of the
-      potholes (3 of 7 on kitti-like, to 5.2 mm median; 3 of 11 at 2 Hz, 24 mm short), and on
-      the real nuScenes clip read 31 mm of depth on plain road (README, "Pothole depth from the images").
+      measured without depth. Off by default: it measures few potholes, and plain road on the real nuScenes
+      clip read as a dent (README, "Pothole depth from the images").
     """
 
     policy: str = ""
