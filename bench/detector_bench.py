@@ -1,0 +1,122 @@
+"""Detector benchmark: mAP per dataset and class, false boxes on background frames, CPU ms per frame.
+
+For each weights file (``--weights NAME=PATH ...``), on the **original** RDD2022 photos in
+``../shared/data`` (not the downscaled training copies):
+
+- ``czech_val``: the Czech car-mounted ``val.txt`` split (ids 2500–2999, 186 photos, 42 background);
+- ``china_val``: the China_MotorBike ``images/val`` split (396 photos);
+
+ultralytics' validator (conf 0.001, the standard mAP protocol) gives mAP50, mAP50-95, precision and
+recall overall and mAP50 per class. False boxes per background frame: the Czech val frames without
+boxes, predicted at each ``--tau`` (the run's ``filter.tau_conf`` decides what survives).
+Speed: median ms per frame of ``predict`` on 20 Czech photos, batch 1, at each ``--imgsz``, on this CPU
+with torch's threads as they are. Writes ``bench/results/detector.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine_entry, write_results  # noqa: E402
+
+CLASSES = ("D00", "D10", "D20", "D40")
+
+
+def _commit() -> str:
+    r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                       cwd=Path(__file__).parent)
+    return r.stdout.strip() or "unknown"
+
+
+def _val(model, data_yaml: Path, imgsz: int) -> dict:
+    m = model.val(data=str(data_yaml), imgsz=imgsz, batch=8, conf=0.001, device="cpu", plots=False,
+                  verbose=False, workers=0, project=tempfile.mkdtemp(prefix="pavemap-val-"))
+    names = model.names
+    per_class = {names[int(c)]: round(float(m.box.ap50[i]), 4) for i, c in enumerate(m.box.ap_class_index)}
+    return {"mAP50": round(float(m.box.map50), 4), "mAP50_95": round(float(m.box.map), 4),
+            "precision": round(float(m.box.mp), 4), "recall": round(float(m.box.mr), 4),
+            "mAP50_per_class": per_class, "images": int(getattr(m, "seen", 0) or 0) or None}
+
+
+def _background_frames(czech: Path) -> list[Path]:
+    rels = [ln.strip() for ln in (czech / "val.txt").read_text().splitlines() if ln.strip()]
+    out = []
+    for r in rels:
+        img = (czech / r).resolve()
+        lab = czech / "labels" / f"{img.stem}.txt"
+        if not lab.is_file() or not lab.read_text().strip():
+            out.append(img)
+    return out
+
+
+def _false_boxes(model, frames: list[Path], imgsz: int, taus: list[float]) -> dict:
+    confs: list[list[float]] = []
+    for f in frames:
+        r = model.predict(str(f), imgsz=imgsz, conf=min(taus), device="cpu", verbose=False)[0]
+        confs.append([float(c) for c in r.boxes.conf.tolist()] if r.boxes is not None else [])
+    return {f"{t:.2f}": {"boxes_per_frame": round(sum(sum(c >= t for c in cs) for cs in confs) / len(frames), 3),
+                         "frames_with_a_box": sum(any(c >= t for c in cs) for cs in confs)}
+            for t in taus} | {"frames": len(frames)}
+
+
+def _speed(model, frames: list[Path], imgsz: int) -> dict:
+    import numpy as np
+    from PIL import Image
+
+    imgs = [np.ascontiguousarray(np.asarray(Image.open(f).convert("RGB"))[:, :, ::-1]) for f in frames]
+    model.predict(imgs[0], imgsz=imgsz, device="cpu", verbose=False)  # warm-up
+    ms = []
+    for im in imgs:
+        t = time.perf_counter()
+        model.predict(im, imgsz=imgsz, device="cpu", verbose=False)
+        ms.append((time.perf_counter() - t) * 1000)
+    return {"median_ms": round(statistics.median(ms), 1), "min_ms": round(min(ms), 1), "max_ms": round(max(ms), 1),
+            "frames": len(ms), "image": f"{Image.open(frames[0]).size[0]}x{Image.open(frames[0]).size[1]}"}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--weights", nargs="+", required=True, help="NAME=PATH of each detector")
+    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    ap.add_argument("--imgsz", type=int, nargs="+", default=[640])
+    ap.add_argument("--tau", type=float, nargs="+", default=[0.05, 0.10, 0.25, 0.40])
+    ap.add_argument("--results", type=Path, default=Path(__file__).parent / "results" / "detector.json")
+    ap.add_argument("--note", default="")
+    a = ap.parse_args()
+
+    from pavemap.detect.yolo import _import_ultralytics, load_detector, resolve_data_yaml
+
+    _import_ultralytics()
+    work = Path(tempfile.mkdtemp(prefix="pavemap-detbench-"))
+    yamls = {"czech_val": resolve_data_yaml(a.data / "rdd2022-czech" / "data.yaml", work / "cz"),
+             "china_val": resolve_data_yaml(a.data / "rdd2022-china-motorbike" / "data.yaml", work / "cn")}
+    bg = _background_frames(a.data / "rdd2022-czech")
+    speed_frames = sorted((a.data / "rdd2022-czech" / "images").glob("*.jpg"))[:20]
+    res = {"commit": _commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry(),
+           "torch_threads": __import__("torch").get_num_threads(), "note": a.note, "models": {}}
+    for spec in a.weights:
+        name, path = spec.split("=", 1)
+        model = load_detector(path)
+        entry: dict = {"weights": path, "by_imgsz": {}}
+        for sz in a.imgsz:
+            row = {ds: _val(model, y, sz) for ds, y in yamls.items()}
+            row["czech_background"] = _false_boxes(model, bg, sz, a.tau)
+            row["cpu_speed"] = _speed(model, speed_frames, sz)
+            entry["by_imgsz"][str(sz)] = row
+            print(name, sz, {k: v.get("mAP50") for k, v in row.items() if isinstance(v, dict)},
+                  row["czech_background"], row["cpu_speed"]["median_ms"], flush=True)
+        res["models"][name] = entry
+    res["load_avg_1m_end"] = round(os.getloadavg()[0], 2)
+    write_results(a.results, res)
+
+
+if __name__ == "__main__":
+    main()
