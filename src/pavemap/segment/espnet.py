@@ -68,7 +68,7 @@ ARCHS: dict[str, Arch] = {
                      (0.485, 0.456, 0.406), (0.229, 0.224, 0.225), False, True, 16),
 }
 #: The default network, chosen by measurement (bench/segment_bench.py, docs/segmenter.md).
-DEFAULT = "espnet"
+DEFAULT = "espnetv2"
 
 
 def weight_dirs() -> list[Path]:
@@ -107,14 +107,11 @@ def find_weights(arch: str, weights: str | os.PathLike | None = None) -> Path:
 
 def _state_dict(path: Path) -> dict:
     """The plain state dict in ``path`` (a wrapping {"state_dict": …} and "module." prefixes undone)."""
-    import pickle
-    import zipfile
-
     import torch
 
     try:
         sd = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile, OSError, ValueError) as e:
+    except Exception as e:  # noqa: BLE001 - a damaged pickle fails in many ways (KeyError, EOFError, ...)
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise PavemapError(f"{path}: not a readable PyTorch weight file (corrupt or truncated? {first[:160]})") \
             from None
@@ -172,7 +169,7 @@ class EspnetSegmenter:
     """
 
     def __init__(self, arch: str = DEFAULT, weights: str | os.PathLike | None = None, device: str = "auto",
-                 width: int = 1024, keep_aspect: bool = False):
+                 width: int = 768, keep_aspect: bool = True):
         import torch
 
         from pavemap.device import resolve_device
