@@ -62,7 +62,8 @@ def synthetic_rows(data: Path, device: str) -> list[dict]:
                 road = seg.segment([img])[0] == 0
                 ms.append(1000 * (time.perf_counter() - t0))
                 inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
-            rows.append({"preset": preset, "arch": arch, "width": width, "input": list(seg.input_size(*imgs[0].shape[:2])),
+            size = list(seg.input_size(*imgs[0].shape[:2]))
+            rows.append({"preset": preset, "arch": arch, "width": width, "input": size,
                          "image": list(imgs[0].shape[:2]), "views": len(imgs), "road_iou": round(inter / union, 4),
                          "ms_per_frame_median": round(float(np.median(ms)), 1)})
             print(rows[-1], flush=True)
