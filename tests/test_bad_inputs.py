@@ -379,8 +379,8 @@ def test_a_sequence_without_semantics_runs_with_the_fallback_filter(tiny_seq, tm
     check(invoke("run", seq, "--out", tmp_path / "sim", "--detector", "sim"), 2, "semantic map")
     out = tmp_path / "run"
     r = invoke("run", seq, "--out", out, "--detector", "file", "--device", "cpu", "--epochs", "1",
-               "--set", "output.figures=false", "output.report=false")
-    check(r, 0, "warning: mesh: no semantic maps", "defects")
+               "--segmenter", "none", "--set", "output.figures=false", "output.report=false")
+    check(r, 0, "warning: mesh: no semantic maps", "defects", "semantics: none (--segmenter none)")
     assert (out / "metrics.json").is_file()
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["mask_fallbacks"].get("no_semantics", 0) > 0

@@ -66,7 +66,7 @@ def captured_run(monkeypatch):
         def summary(self) -> str:
             return "stub run"
 
-    def fake_run(seq, cfg, out, overwrite=False, progress=True):  # noqa: ANN001, ARG001
+    def fake_run(seq, cfg, out, overwrite=False, progress=True, **kw):  # noqa: ANN001, ANN003, ARG001
         Path(out).mkdir(parents=True, exist_ok=True)
         (Path(out) / "config.yaml").write_text(dump_config(cfg))
         seen["cfg"] = cfg

@@ -184,7 +184,8 @@ def test_cli_import_kitti_with_corridor_fallback(tmp_path):
     root = write_fixture(tmp_path / "kitti")
     with pytest.warns(UserWarning, match="corridor"):
         r = CliRunner().invoke(app, ["import", "kitti", str(root), "--sequence", "00", "--camera", "2",
-                                     "--stride", "2", "-o", str(tmp_path / "seq")])  # -o as in the README
+                                     "--stride", "2", "--segmenter", "corridor",
+                                     "-o", str(tmp_path / "seq")])  # -o as in the README
     assert r.exit_code == 0, r.output
     assert "kitti-00: 2 frames" in r.output and "corridor fallback" in r.output
     s = read_sequence(tmp_path / "seq")

@@ -183,12 +183,17 @@ def run(
     out_dir: str | os.PathLike | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    segmenter: str = "auto",
+    segmenter_weights: str | os.PathLike | None = None,
 ) -> RunResult:
     """Run the whole pipeline on a sequence folder and write every output into ``out_dir``.
 
     Without ``config`` the preset that fits the rig is used (:func:`pavemap.config.preset_for`);
     ``detector.backend: auto`` becomes ``sim`` on a synthetic sequence, else the shipped YOLO weights.
     Both choices are logged and returned in ``RunResult.preset`` / ``RunResult.detector``.
+    A drive without semantic maps is labelled by ``segmenter`` (:func:`pavemap.segment.auto.semantics_for_run`:
+    ``auto`` = ESPNet when its weights are found, into ``out_dir/semantics``); what was used is in
+    ``RunResult.metrics["semantics"]``.
 
     >>> result = pavemap.run("my_seq", pavemap.load_config("nuscenes"), "runs/my_seq")  # doctest: +SKIP
     """
@@ -223,7 +228,11 @@ def run(
         if folder.info.get("kept"):
             log.warning("--overwrite kept %d file(s) in %s that pavemap did not write: %s", len(folder.info["kept"]),
                         out, ", ".join(folder.info["kept"][:5]))
-        result = _run(seq, cfg, detector, device, out, progress)
+        from pavemap.segment.auto import semantics_for_run
+
+        seq, semantics = semantics_for_run(seq, segmenter, segmenter_weights, device, out)
+        log.info("semantics: %s", semantics)
+        result = _run(seq, cfg, detector, device, out, progress, semantics)
         result.preset, result.detector = preset_note, f"{detector.backend} ({why})"
         result.warnings = seen.messages
         folder.record("complete")
@@ -253,7 +262,7 @@ class _WarningList(logging.Handler):
 
 
 def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, out: Path,
-         progress: bool) -> RunResult:
+         progress: bool, semantics: str = "") -> RunResult:
     stages = Stages(out)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
     seq_key = hash_sequence(seq)
@@ -298,6 +307,7 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
     metrics = dict(result.metrics)
     metrics["seconds"] = {k: round(v, 3) for k, v in timings.items()}
     metrics["detector"] = detector.backend
+    metrics["semantics"] = semantics
     mesh_metrics_file = mesh_dir / "metrics.json"
     if mesh_metrics_file.is_file():
         metrics["mesh"] = json.loads(mesh_metrics_file.read_text())

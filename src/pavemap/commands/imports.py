@@ -1,9 +1,9 @@
 """``pavemap import kitti|nuscenes|folder|video``: real drives → sequence folders (SPEC §6).
 
 Every importer can add per-frame semantics: ``--labels DIR`` (label PNGs) with
-``--class-map`` (preset or YAML), or ``--segmenter W.pt`` (ultralytics semantic model).
-With neither, the warned trajectory-corridor fallback writes road masks
-(``--no-semantics`` skips masks altogether).
+``--class-map`` (preset or YAML), or ``--segmenter`` (ESPNet / ESPNetv2 Cityscapes weights, or an
+ultralytics semantic model .pt). With neither, ESPNet labels the images when its weights are found
+(else the warned trajectory-corridor fallback, said on the console; ``--no-semantics`` skips masks).
 """
 
 from __future__ import annotations
@@ -24,7 +24,12 @@ _LABELS = typer.Option(None, "--labels", help="Folder of label PNGs (<camera>/<f
 _CLASS_MAP = typer.Option(
     None, "--class-map", help="Label set: preset (rome-nuscenes, rome-kitti, mapillary-vistas, pavemap) or YAML."
 )
-_SEGMENTER = typer.Option(None, "--segmenter", help="ultralytics semantic-segmentation weights (.pt).")
+_SEGMENTER = typer.Option(
+    None, "--segmenter", help="auto (default: ESPNet when its weights are found and the images are colour, else the "
+    "corridor fallback, said on the console), espnet, espnetv2, corridor, none, or an ultralytics semantic "
+    "segmentation .pt file. See docs/segmenter.md.")
+_SEG_WEIGHTS = typer.Option(None, "--segmenter-weights", help="ESPNet / ESPNetv2 weight file (default: looked up in "
+                            "$PAVEMAP_WEIGHTS, ~/.cache/pavemap/weights; see docs/segmenter.md).")
 _NO_SEM = typer.Option(False, "--no-semantics", help="Write no semantic masks (no fallback either).")
 _DEVICE = typer.Option("auto", help=f"Segmenter device: {DEVICE_HELP}.")
 _OVERWRITE = typer.Option(False, "--overwrite", help="Replace a sequence folder pavemap wrote (deletes only the "
@@ -56,25 +61,41 @@ _GEO_ORIGIN = typer.Option(None, "--geo-origin", help="LAT,LON[,ALT[,HEADING]] o
                            "(HEADING: degrees clockwise from north of world +x).")
 
 
-def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, segmenter: Path | None,
-                  no_semantics: bool, camera_height: float | None, device: str = "auto") -> str:
-    """Attach semantics to an imported sequence; returns a one-word description of what was done."""
+def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, segmenter: str | None,
+                  no_semantics: bool, camera_height: float | None, device: str = "auto",
+                  segmenter_weights: Path | None = None) -> str:
+    """Attach semantics to an imported sequence; returns a short description of what was done."""
     from pavemap.segment import attach_label_folder, corridor_semantics, segment_sequence
+    from pavemap.segment.auto import GreyImagesError, WeightsMissingError, arch_of, espnet_semantics
+    from pavemap.segment.espnet import ARCHS
 
+    spec = segmenter or "auto"
     if labels is not None and segmenter is not None:
         raise typer.BadParameter("give --labels or --segmenter, not both")
     if labels is not None:
         attach_label_folder(seq, labels, class_map or "pavemap")
         return "labels"
-    if segmenter is not None:
-        from pavemap.segment.yolo_seg import UltralyticsSegmenter
-
-        segment_sequence(seq, UltralyticsSegmenter(segmenter, class_map or "mapillary-vistas", device=device))
-        return "segmenter"
-    if no_semantics:
+    if no_semantics or spec == "none":
         return "none"
-    corridor_semantics(seq, camera_height=camera_height)
-    return "corridor fallback"
+    if spec == "corridor":
+        corridor_semantics(seq, camera_height=camera_height)
+        return "corridor fallback"
+    if spec == "auto" or spec in ARCHS:
+        try:
+            espnet_semantics(seq, arch_of(spec), segmenter_weights, device)
+            return f"{arch_of(spec)} segmenter"
+        except (GreyImagesError, WeightsMissingError) as e:
+            if spec != "auto":
+                raise
+            typer.echo(f"segmenter not used: {e}; using the trajectory-corridor fallback")
+            corridor_semantics(seq, camera_height=camera_height)
+            return "corridor fallback"
+    if not spec.lower().endswith(".pt") and not Path(spec).is_file():
+        raise typer.BadParameter(f"--segmenter {spec!r}: choose auto, {', '.join(ARCHS)}, corridor, none or a .pt file")
+    from pavemap.segment.yolo_seg import UltralyticsSegmenter
+
+    segment_sequence(seq, UltralyticsSegmenter(spec, class_map or "mapillary-vistas", device=device))
+    return "segmenter"
 
 
 def _done(seq: Sequence, out: Path, sem: str) -> None:
@@ -108,7 +129,8 @@ def kitti_cmd(
     oxts_first: int | None = typer.Option(None, help="OXTS record of odometry frame 0 (default: the devkit's "
                                           "offset for sequences 00-10, e.g. 1100 for 08)."),
     geo_origin: str | None = _GEO_ORIGIN, gps_lever_arm: str | None = _LEVER,
-    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
+    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: str | None = _SEGMENTER,
+    segmenter_weights: Path | None = _SEG_WEIGHTS,
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """KITTI odometry sequence → sequence folder."""
@@ -116,7 +138,7 @@ def kitti_cmd(
 
     seq = import_kitti(root, sequence, out, camera=camera, start=start, stop=stop, stride=stride, lidar=lidar,
                        geo=_geo(str(oxts) if oxts else None, None, geo_origin, oxts_first, gps_lever_arm))
-    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, 1.65, device))
+    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, 1.65, device, segmenter_weights))
 
 
 @imports_app.command("nuscenes")
@@ -129,7 +151,8 @@ def nuscenes_cmd(
     sweeps: bool = typer.Option(False, "--sweeps", help="All camera images (12 Hz), not only keyframes."),
     cameras: str | None = typer.Option(None, help="Comma-separated channels (default: the six CAM_*)."),
     max_frames: int | None = typer.Option(None, help="Keep at most this many frames."),
-    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
+    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: str | None = _SEGMENTER,
+    segmenter_weights: Path | None = _SEG_WEIGHTS,
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """One nuScenes scene (6 cameras, keyframes or sweeps) → sequence folder."""
@@ -141,7 +164,7 @@ def nuscenes_cmd(
     seq = import_nuscenes(dataroot, scene, out, version=version, cameras=cams, sweeps=sweeps, max_frames=max_frames)
     # the world origin is the first ego position, on the ground: camera z is its mounting height
     h = float(np.mean([v.T_world_cam[2, 3] for v in seq.frames[0].views.values()]))
-    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, h, device))
+    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, h, device, segmenter_weights))
 
 
 @imports_app.command("folder")
@@ -155,7 +178,8 @@ def folder_cmd(
     name: str | None = typer.Option(None, help="Sequence name (default: the folder name)."),
     gps: str | None = _GPS, gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
     gps_lever_arm: str | None = _LEVER,
-    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
+    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: str | None = _SEGMENTER,
+    segmenter_weights: Path | None = _SEG_WEIGHTS,
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
     ego_mask: str | None = typer.Option(
         None, "--ego-mask", help="Ego vehicle (bonnet, dashboard): 'auto' (default with --poses sfm), 'none', "
@@ -174,7 +198,8 @@ def folder_cmd(
     seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height,
                         geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm), ego_mask=ego_mask,
                         refine_intrinsics=refine_intrinsics, fps=fps)
-    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device))
+    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device,
+                                  segmenter_weights))
 
 
 @imports_app.command("video")
@@ -191,7 +216,8 @@ def video_cmd(
     camera_height: float = typer.Option(1.5, help="Camera height above the road, metres (SfM scale, fallback)."),
     gps: str | None = _GPS, gps_offset: float | None = _GPS_OFFSET, geo_origin: str | None = _GEO_ORIGIN,
     gps_lever_arm: str | None = _LEVER,
-    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: Path | None = _SEGMENTER,
+    labels: Path | None = _LABELS, class_map: str | None = _CLASS_MAP, segmenter: str | None = _SEGMENTER,
+    segmenter_weights: Path | None = _SEG_WEIGHTS,
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """A video of one camera → frames at --fps with poses from a CSV or SfM → sequence folder."""
@@ -199,7 +225,8 @@ def video_cmd(
 
     seq = import_video(video, cameras, poses, out, fps=fps or None, start=start, stop=stop, max_frames=max_frames,
                        camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm))
-    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device))
+    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device,
+                                  segmenter_weights))
 
 
 @imports_app.command("gps")

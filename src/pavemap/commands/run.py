@@ -29,6 +29,11 @@ def register(app: typer.Typer) -> None:
         device: str | None = opt.DEVICE,
         epochs: int | None = opt.EPOCHS,
         crs: str | None = opt.CRS,
+        segmenter: str = typer.Option("auto", "--segmenter", help="For a drive without semantic maps: auto (ESPNet "
+                                      "when its weights are found, else run without; said on the console), espnet, "
+                                      "espnetv2 or none. Labels go to OUT/semantics. See docs/segmenter.md."),
+        segmenter_weights: Path | None = typer.Option(None, "--segmenter-weights", help="The segmenter's weight "
+                                                      "file (default: looked up, see docs/segmenter.md)."),
         overwrite: bool = typer.Option(False, help="Replace a run folder that holds another pavemap run (deletes "
                                        "only the files pavemap wrote there)."),
     ) -> None:
@@ -41,7 +46,8 @@ def register(app: typer.Typer) -> None:
                                                 "device": device, "mesh.epochs": epochs,
                                                 "output.crs": crs})
         opt.announce_detector(cfg, s)
-        result = run_pipeline(s, cfg, out, overwrite=overwrite)
+        result = run_pipeline(s, cfg, out, overwrite=overwrite, segmenter=segmenter,
+                              segmenter_weights=segmenter_weights)
         report(result)
         typer.echo(f"outputs in {out}  (report: {out / 'report.html'})")
 
@@ -83,6 +89,9 @@ def report(result: object, prefix: str = "") -> None:
     from pavemap.pipeline import skipped_text
 
     summary = result.summary()  # type: ignore[attr-defined]
+    semantics = getattr(result, "metrics", {}).get("semantics")
+    if semantics:
+        typer.echo(f"semantics: {semantics}")
     for w in getattr(result, "warnings", []):
         if w.removeprefix("mesh: ") not in summary:  # the summary repeats the geometry check's own
             typer.secho(f"warning: {w}", fg=typer.colors.YELLOW, err=True)

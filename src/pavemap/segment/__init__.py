@@ -110,10 +110,26 @@ def attach_label_folder(
     return seq
 
 
-def segment_sequence(seq: Sequence, segmenter: Segmenter, batch: int = 8) -> Sequence:
-    """Run a segmenter over every view; writes semantics/… and the segmenter's label table."""
+def _ego_id(classes: list[SemanticClass]) -> int | None:
+    """The class the ego vehicle's pixels get: ``ego`` when the table has one, else its first movable class."""
+    ego = next((c.id for c in classes if c.name == "ego"), None)
+    return ego if ego is not None else next((c.id for c in classes if c.movable), None)
+
+
+def segment_sequence(seq: Sequence, segmenter: Segmenter, batch: int = 8,
+                     ego_masks: dict[str, np.ndarray | None] | None = None,
+                     out_root: str | os.PathLike | None = None) -> Sequence:
+    """Run a segmenter over every view; writes semantics/… and the segmenter's label table.
+
+    ``ego_masks``: per camera, (H, W) bool True on the ego vehicle (bonnet): those pixels get the
+    table's ``ego`` class (else its first movable class), never road. ``out_root``: write the label
+    PNGs under this folder instead (a run folder; the views then point at them by absolute path) and
+    leave the sequence folder and its sequence.json untouched.
+    """
     from tqdm import tqdm
 
+    root = Path(out_root) if out_root is not None else None
+    ego_id = _ego_id(list(segmenter.classes))
     views = [(f, cam, v) for f in seq.frames for cam, v in f.views.items()]
     with tqdm(total=len(views), desc="segment", unit="img", disable=None) as bar:
         for i in range(0, len(views), batch):
@@ -123,12 +139,17 @@ def segment_sequence(seq: Sequence, segmenter: Segmenter, batch: int = 8) -> Seq
             for (f, cam, v), img, lab in zip(chunk, imgs, labs, strict=True):
                 if lab.shape != img.shape[:2]:
                     raise PavemapError(f"segmenter returned {lab.shape} labels for a {img.shape[:2]} image")
+                ego = (ego_masks or {}).get(cam)
+                if ego is not None and ego_id is not None and ego.shape == lab.shape:
+                    lab = np.where(ego, np.uint8(ego_id), lab)
                 rel = _semantics_rel(cam, f.index)
-                _save_labels(seq.path(rel), lab)
-                v.semantics = rel
+                target = seq.path(rel) if root is None else root / rel
+                _save_labels(target, lab)
+                v.semantics = rel if root is None else str(target.resolve())
             bar.update(len(chunk))
     seq.classes = list(segmenter.classes)
-    write_sequence(seq)
+    if root is None:
+        write_sequence(seq)
     return seq
 
 

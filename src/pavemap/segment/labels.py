@@ -77,6 +77,14 @@ _ROME_KITTI = [
     SemanticClass(5, "other"),
     SemanticClass(6, "sky", sky=True),
 ]
+#: Cityscapes' 19 train ids (what ESPNet / ESPNetv2 output), their background (19) and the ego vehicle
+#: (20: the camera's ego mask, painted over the model's output; movable, so no stage uses it as ground).
+CITYSCAPES_NAMES = ["road", "sidewalk", "building", "wall", "fence", "pole", "traffic_light", "traffic_sign",
+                    "vegetation", "terrain", "sky", "person", "rider", "car", "truck", "bus", "train", "motorcycle",
+                    "bicycle"]
+_CITYSCAPES = [
+    SemanticClass(i, n, road=n == "road", movable=i >= 11, sky=n == "sky") for i, n in enumerate(CITYSCAPES_NAMES)
+] + [SemanticClass(19, "other"), SemanticClass(20, "ego", movable=True)]
 #: pavemap's own table (the synthetic world's ids; importers default to it).
 _PAVEMAP = PAVEMAP_CLASSES
 
@@ -154,6 +162,7 @@ PRESETS = {
     "rome-kitti": lambda: _identity("rome-kitti", _ROME_KITTI),
     "mapillary-vistas": _vistas,
     "pavemap": _pavemap,
+    "cityscapes": lambda: _identity("cityscapes", _CITYSCAPES),
 }
 
 
@@ -179,7 +188,8 @@ def _classes_from_yaml(items: object, file: Path) -> list[SemanticClass]:
 
 
 def load_label_map(spec: str | os.PathLike) -> LabelMap:
-    """A preset name (``rome-nuscenes``, ``rome-kitti``, ``mapillary-vistas``, ``pavemap``) or a YAML file."""
+    """A preset name (``rome-nuscenes``, ``rome-kitti``, ``mapillary-vistas``, ``pavemap``, ``cityscapes``) or a
+    YAML file."""
     s = str(spec)
     if s in PRESETS:
         return PRESETS[s]()

@@ -1,0 +1,168 @@
+"""Segmenter benchmark: ESPNet vs ESPNetv2 (Cityscapes weights) on synthetic drives and real nuScenes frames.
+
+Rows: road IoU against the synthetic truth (kitti-like, nuscenes-like; every view) and milliseconds per frame
+per network and input width; on the shared nuScenes clips the road share, the bonnet rows called road by the
+model alone and after the ego mask, ms per 1600 x 900 frame; end to end, the F1 of ``pavemap run`` on a
+synthetic drive with its true semantics vs the same drive with semantics withheld and the segmenter's maps
+(same detections, ``--detector file``). Writes ``bench/results/segment.json``.
+
+    python bench/segment_bench.py [--device cpu|cuda] [--data DIR] [--e2e-frames 12] [--skip-e2e]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import bench_parser, machine_entry, write_results  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+CANDIDATES = [("espnet", 1024), ("espnet", 768), ("espnetv2", 512), ("espnetv2", 640), ("espnetv2", 768)]
+SYNTH = {"kitti-like": {"frames": 6, "scale": 0.5}, "nuscenes-like": {"frames": 3, "scale": 0.25}}
+
+
+def synth(data: Path, preset: str, frames: int, scale: float) -> Path:
+    from pavemap.synth import synthesize
+
+    root = data / f"segment-{preset}-{frames}-{scale}"
+    if not (root / "sequence.json").is_file():
+        synthesize(root, preset=preset, seed=0, frames=frames, scale=scale, depth="none", progress=False,
+                   overwrite=True)
+    return root
+
+
+def synthetic_rows(data: Path, device: str) -> list[dict]:
+    from pavemap.io.sequence import load_rgb, load_semantics, read_sequence
+    from pavemap.segment.espnet import EspnetSegmenter
+
+    rows = []
+    for preset, p in SYNTH.items():
+        seq = read_sequence(synth(data, preset, p["frames"], p["scale"]))
+        views = [v for f in seq.frames for v in f.views.values()]
+        imgs = [load_rgb(seq.path(v.image)) for v in views]
+        truth = [seq.class_lut("road")[load_semantics(seq.path(v.semantics))] for v in views]
+        for arch, width in CANDIDATES:
+            seg = EspnetSegmenter(arch, device=device, width=width)
+            seg.segment(imgs[:1])  # warm-up
+            inter = union = 0
+            ms = []
+            for img, tr in zip(imgs, truth, strict=True):
+                t0 = time.perf_counter()
+                road = seg.segment([img])[0] == 0
+                ms.append(1000 * (time.perf_counter() - t0))
+                inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
+            size = list(seg.input_size(*imgs[0].shape[:2]))
+            rows.append({"preset": preset, "arch": arch, "width": width, "input": size,
+                         "image": list(imgs[0].shape[:2]), "views": len(imgs), "road_iou": round(inter / union, 4),
+                         "ms_per_frame_median": round(float(np.median(ms)), 1)})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def real_rows(device: str, n: int = 6) -> list[dict]:
+    from pavemap.io.egomask import detect_ego_mask
+    from pavemap.io.sequence import load_rgb
+    from pavemap.segment.espnet import EspnetSegmenter
+
+    rows = []
+    for clip in ("nuscenes-front-clip", "nuscenes-front-clip-2"):
+        paths = sorted((SHARED / clip / "images").glob("*.jpg"))
+        if not paths:
+            continue
+        img0 = load_rgb(paths[0])
+        h, w = img0.shape[:2]
+        ego = detect_ego_mask(paths, w, h)
+        pick = [paths[i] for i in np.linspace(0, len(paths) - 1, n).round().astype(int)]
+        imgs = [load_rgb(p) for p in pick]
+        bottom = slice(int(0.93 * h), h)
+        for arch, width in CANDIDATES:
+            seg = EspnetSegmenter(arch, device=device, width=width)
+            seg.segment(imgs[:1])
+            ms, road, bonnet_bare, bonnet = [], [], [], []
+            for img in imgs:
+                t0 = time.perf_counter()
+                bare = seg.segment([img])[0]
+                ms.append(1000 * (time.perf_counter() - t0))
+                lab = np.where(ego, np.uint8(seg.ego_id), bare)
+                road.append(float((lab == 0).mean()))
+                bonnet_bare.append(float((bare[bottom] == 0).mean()))
+                bonnet.append(float((lab[bottom] == 0).mean()))
+            rows.append({"clip": clip, "arch": arch, "width": width, "frames": len(imgs),
+                         "ego_mask_fraction": round(float(ego.mean()), 4),
+                         "road_fraction_median": round(float(np.median(road)), 4),
+                         "bottom_rows_road_without_ego_mask": round(float(np.median(bonnet_bare)), 4),
+                         "bottom_rows_road_with_ego_mask": round(float(np.median(bonnet)), 4),
+                         "ms_per_frame_median": round(float(np.median(ms)), 1)})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def e2e(data: Path, device: str, frames: int, epochs: int | None) -> dict:
+    """F1 of the same run with the true semantics and with the segmenter's (semantics withheld)."""
+    import pavemap
+    from pavemap.config import load_config
+    from pavemap.io.sequence import read_sequence
+    from pavemap.synth import detect_sequence
+
+    src = synth(data, "kitti-like", frames, 0.5)
+    if not (src / "detections.jsonl").is_file():
+        detect_sequence(read_sequence(src), seed=0)
+    bare = data / f"segment-e2e-nosem-{frames}"
+    if not (bare / "sequence.json").is_file():
+        shutil.copytree(src, bare, ignore=shutil.ignore_patterns("semantics"))
+        d = json.loads((bare / "sequence.json").read_text())
+        for f in d["frames"]:
+            for v in f["views"].values():
+                v["semantics"] = None
+        (bare / "sequence.json").write_text(json.dumps(d))
+    out = {}
+    for name, seq_dir in (("true_semantics", src), ("segmenter", bare)):
+        cfg = load_config("kitti")
+        cfg.device, cfg.detector.backend = device, "file"
+        if epochs:
+            cfg.mesh.epochs = epochs
+        cfg.output.figures = cfg.output.report = False
+        run_dir = data / f"segment-e2e-run-{name}-{frames}"
+        t0 = time.perf_counter()
+        r = pavemap.run(read_sequence(seq_dir), cfg, run_dir, overwrite=True, progress=False)
+        e = r.evaluation or {}
+        out[name] = {"f1": e.get("f1"), "precision": e.get("precision"), "recall": e.get("recall"),
+                     "defects": len(r.defects), "semantics": r.metrics.get("semantics"),
+                     "seconds": round(time.perf_counter() - t0, 1)}
+        print(name, out[name], flush=True)
+    if out["true_semantics"]["f1"] is not None and out["segmenter"]["f1"] is not None:
+        out["f1_difference"] = round(out["segmenter"]["f1"] - out["true_semantics"]["f1"], 4)
+    out.update({"preset": "kitti-like", "frames": frames, "scale": 0.5, "mesh_epochs": epochs or "preset"})
+    return out
+
+
+def main() -> None:
+    ap = bench_parser(__doc__, "", ROOT / "bench" / "results" / "segment.json")
+    ap.add_argument("--e2e-frames", type=int, default=12)
+    ap.add_argument("--skip-e2e", action="store_true")
+    args = ap.parse_args()
+    args.data.mkdir(parents=True, exist_ok=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
+    res = {**machine_entry(), "commit": commit, "device": args.device, "load_average_start": os.getloadavg()}
+    res["synthetic"] = synthetic_rows(args.data, args.device)
+    res["real"] = real_rows(args.device)
+    if not args.skip_e2e:
+        res["end_to_end"] = e2e(args.data, args.device, args.e2e_frames, args.epochs)
+    res["load_average_end"] = os.getloadavg()
+    write_results(args.results, res)
+
+
+if __name__ == "__main__":
+    main()
