@@ -280,13 +280,16 @@ def _run(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, device: str, o
     from pavemap.mesh.geometry import mark_observed
 
     mark_observed(result.instances, mesh)  # a defect on ground no view observed says so (issue 12)
-    from pavemap.maintain import assess, summary
+    from pavemap.maintain import assess, load_policy, summary
+    from pavemap.maintain.assessment import survey_inputs
 
     m = cfg.maintenance  # what to repair first (issue 16): measures, severity, urgency, road segments
+    seen = survey_inputs(seq, detector.backend, result.metrics, load_policy(m.policy), detector.imgsz,
+                         cfg.filter.tau_conf)  # what the survey could see: segments "not assessed" (issue 41)
     result.segments = assess(result.instances, seq, mesh.surface, result.instance_labels, mesh.observed,
                              policy=m.policy, segment_m=m.segment_m, lane_width_m=m.lane_width_m,
-                             samples=mesh.samples, floor_sweep=m.floor_sweep)
-    result.metrics["maintenance"] = summary(result.instances, result.segments)
+                             samples=mesh.samples, floor_sweep=m.floor_sweep, **seen)
+    result.metrics["maintenance"] = summary(result.instances, result.segments, seen["check"])
     timings["fuse"] = time.perf_counter() - t
     stages.mark("fuse", hash_parts(key, dataclasses.asdict(cfg.filter), dataclasses.asdict(cfg.fusion)),
                 timings["fuse"])

@@ -100,15 +100,19 @@ def register(app: typer.Typer) -> None:
             folder.remove_own("metrics.json")  # an earlier result's completion marker, until this one is done
             surf, m = _surface(surface.value, s, mesh)
             result = filter_and_fuse(s, dets, surf, rc.filter, cfg, mesh=m)
-            from pavemap.maintain import assess, summary
+            from pavemap.maintain import assess, load_policy, summary
+            from pavemap.maintain.assessment import survey_inputs
 
             mc = rc.maintenance  # the same defect schema as `pavemap run` (issue 16)
+            # a detections file: the image's own pixels; sim where the sequence is synthetic (like detector auto)
+            kind = "sim" if (seq / "truth" / "defects.geojson").is_file() else "file"
+            seen = survey_inputs(s, kind, result.metrics, load_policy(mc.policy), tau_conf=rc.filter.tau_conf)
             result.segments = assess(result.instances, s, surf, result.instance_labels,
                                      getattr(m, "observed", None) if surface.value in ("mesh", "auto") else None,
                                      policy=mc.policy, segment_m=mc.segment_m, lane_width_m=mc.lane_width_m,
                                      samples=getattr(m, "samples", None) if surface.value in ("mesh", "auto") else None,
-                                     floor_sweep=mc.floor_sweep)
-            result.metrics["maintenance"] = summary(result.instances, result.segments)
+                                     floor_sweep=mc.floor_sweep, **seen)
+            result.metrics["maintenance"] = summary(result.instances, result.segments, seen["check"])
             ev = None
             if truth and (seq / "truth" / "defects.geojson").is_file():
                 from pavemap.evaluate import evaluate

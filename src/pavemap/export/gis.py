@@ -61,10 +61,12 @@ def _fields(records: list[dict], schema: list[tuple[str, str]]
     for name, typ in schema:
         vals = [r.get(name) for r in records]
         mask = None
-        if typ == "float":
+        if typ == "float":  # None is NULL (a NaN float stays NaN)
             data.append(np.array([np.nan if v is None else float(v) for v in vals], dtype=np.float64))
+            mask = np.array([v is None for v in vals], dtype=bool)
         elif typ == "int":
             data.append(np.array([-1 if v is None else int(v) for v in vals], dtype=np.int64))
+            mask = np.array([v is None for v in vals], dtype=bool)
         elif typ == "bool":
             data.append(np.array([bool(v) for v in vals], dtype=bool))
             mask = np.array([v is None for v in vals], dtype=bool)

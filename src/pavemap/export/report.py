@@ -29,6 +29,8 @@ from pavemap.export.report_worklist import (
     PRINT_CSS,
     PRIORITY_FILL,
     PRIORITY_ORDER,
+    detector_banner,
+    not_assessed_notice,
     order_records,
     segment_strip,
     slug,
@@ -205,7 +207,7 @@ def _research(props: list[dict], det: dict, metrics: dict | None) -> str:
             f'<div class="kvgrid">{tables}</div>{all_metrics}</details></section>')
 
 
-def _worklist(props: list[dict], det: dict, geo: bool) -> str:
+def _worklist(props: list[dict], det: dict, geo: bool, segments: list | None = None) -> str:
     """The first screen: urgency counts and the work list (or why there is nothing to do)."""
     prio = Counter(str(p["priority"]) for p in props)
     labels = ["repair now"] + sorted({k for k in prio if k != "repair now"}, key=lambda k: PRIORITY_ORDER.get(k, 9))
@@ -221,7 +223,7 @@ def _worklist(props: list[dict], det: dict, geo: bool) -> str:
     note = (f'<p class="muted">{missing} of {len(props)} defects have no evidence photo (the row says why).</p>'
             if missing else "")
     return (f'<section id="worklist"><h2>Work list — {len(props)} defects, most urgent first</h2>'
-            f'<div class="cards small">{cards_html}</div>{body}{note}</section>')
+            f'<div class="cards small">{cards_html}</div>{not_assessed_notice(segments)}{body}{note}</section>')
 
 
 def _map(props: list[dict], instances: list[DefectInstance], bev_rgb: np.ndarray | None,
@@ -347,7 +349,8 @@ def build_report_html(instances: list[DefectInstance], *, bev_rgb: np.ndarray | 
 <body>
 <header><h1>{_esc(title)}</h1><div class="sub">{_esc(sub)}</div></header>
 <main>
-{_geometry_banner(metrics)}{_texture_banner(metrics)}<div class="first">{_worklist(props, det, geo_origin is not None)}
+{_geometry_banner(metrics)}{_texture_banner(metrics)}{detector_banner(metrics)}
+<div class="first">{_worklist(props, det, geo_origin is not None, segments)}
 <div class="side">{map_html}{segment_strip(segments)}</div></div>
 <section id="defects-section"><h2>All measures (<span id="shown-count">{len(props)}</span> shown of
 {len(props)}; most urgent first — click a header to sort)</h2>

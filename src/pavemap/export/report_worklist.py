@@ -145,6 +145,45 @@ def _field(seg: object, *names: str) -> object:
     return None
 
 
+#: Fill of a segment without an index ("not assessed": the survey could not see it well enough), never green.
+NOT_ASSESSED_FILL = "#9e9e9e"
+
+
+def _not_assessed(seg: object) -> bool:
+    """A segment that says it was not assessed (``assessed`` False), or one without an index."""
+    return _field(seg, "assessed") is False or not isinstance(_field(seg, "index", "pci", "condition_index",
+                                                                      "pci_like"), (int, float))
+
+
+def not_assessed_notice(segments: list | None) -> str:
+    """A notice above the work list naming the stretches not assessed and why ('' when every one was): the list
+    may miss defects there, and the road there is not known to be good."""
+    bad = [s for s in segments or [] if _not_assessed(s)]
+    if not bad:
+        return ""
+    def ends(s: object) -> tuple[object, object]:
+        return _field(s, "start_m", "chainage_start_m"), _field(s, "end_m", "chainage_end_m")
+
+    total = sum(float(b or 0) - float(a or 0) for a, b in map(ends, bad))
+    items = "".join(f'<li>segment {_esc(_field(s, "id", "segment"))} ({_fmt(ends(s)[0], 0)}–{_fmt(ends(s)[1], 0)} '
+                    f'm): {_esc(_field(s, "not_assessed_reason") or "no condition index")}</li>' for s in bad)
+    return (f'<div class="notice not-assessed" id="not-assessed"><b>Not assessed: {len(bad)} of {len(segments or [])}'
+            f' segments ({total:.0f} m).</b> The survey did not see them well enough to find the smallest defect the '
+            f'policy cares about, so this list may miss defects there and their condition is unknown (not good).'
+            f'<ul>{items}</ul></div>')
+
+
+def detector_banner(metrics: dict | None) -> str:
+    """A banner when the detector found almost nothing above tau_conf on this footage (metrics.json →
+    maintenance → detector_confidence, :mod:`pavemap.maintain.assessment`); empty otherwise."""
+    chk = ((metrics or {}).get("maintenance") or {}).get("detector_confidence") or {}
+    if not chk.get("low"):
+        return ""
+    return ('<div id="detector-warning" role="alert" style="border:2px solid #8a6d00;background:#fffbe6;'
+            f'padding:8px 12px;margin:0 0 12px"><b style="color:#8a6d00">Detector nearly blind on this footage</b>'
+            f'<p>{_esc(chk.get("message", ""))}</p></div>')
+
+
 def index_colour(v: float) -> str:
     """PCI-like index 0-100 -> colour (red failed … green good), the usual PCI rating bands."""
     for lim, col in ((25, "#8e1b10"), (40, "#c0392b"), (55, "#e67e22"), (70, "#f1c40f"), (85, "#9ccc65")):
@@ -159,7 +198,7 @@ def segment_strip(segments: list | None) -> str:
     for s in segments or []:
         a = _field(s, "start_m", "chainage_start_m", "chainage_start", "start")
         b = _field(s, "end_m", "chainage_end_m", "chainage_end", "end")
-        idx = _field(s, "index", "pci", "condition_index", "pci_like")
+        idx = None if _not_assessed(s) else _field(s, "index", "pci", "condition_index", "pci_like")
         if isinstance(a, (int, float)) and isinstance(b, (int, float)) and b > a:
             counts = _field(s, "counts")
             n = sum(counts.values()) if isinstance(counts, dict) else _field(s, "defects")
@@ -172,20 +211,23 @@ def segment_strip(segments: list | None) -> str:
     parts = []
     for a, b, idx, sid, grade, n in segs:
         has = isinstance(idx, (int, float))
-        col = index_colour(float(idx)) if has else "#bbb"
+        col = index_colour(float(idx)) if has else NOT_ASSESSED_FILL
         x, w = (a - x0) * k, max((b - a) * k, 0.5)
-        tip = (f"segment {sid}: {a:.0f}–{b:.0f} m, PCI-like index {_fmt(idx, 0)}" + (f" ({grade})" if grade else "")
-               + (f", {n} defects" if n is not None else ""))
-        parts.append(f'<g class="seg" data-seg="{_esc(sid)}"><title>{_esc(tip)}</title>'
-                     f'<rect x="{x:.2f}" y="0" width="{w:.2f}" height="{H - 16:.0f}" fill="{col}" stroke="#fff"/>'
-                     + (f'<text x="{x + w / 2:.2f}" y="20" text-anchor="middle">{_fmt(idx, 0)}</text>'
-                        if has and w > 22 else "") + "</g>")
+        state = f"PCI-like index {_fmt(idx, 0)}" + (f" ({grade})" if grade else "") if has else "not assessed"
+        tip = f"segment {sid}: {a:.0f}–{b:.0f} m, {state}" + (f", {n} defects" if n is not None else "")
+        label = _fmt(idx, 0) if has else "n/a"
+        parts.append(f'<g class="seg{"" if has else " not-assessed"}" data-seg="{_esc(sid)}"><title>{_esc(tip)}'
+                     f'</title><rect x="{x:.2f}" y="0" width="{w:.2f}" height="{H - 16:.0f}" fill="{col}" '
+                     f'stroke="#fff"/>' + (f'<text x="{x + w / 2:.2f}" y="20" text-anchor="middle">{label}</text>'
+                                          if w > 22 else "") + "</g>")
     ticks = "".join(f'<text class="tick" x="{(c - x0) * k:.2f}" y="{H - 3:.0f}" text-anchor="'
                     f'{"start" if c == x0 else "end" if c == x1 else "middle"}">{c:.0f} m</text>'
                     for c in sorted({x0, x1, *(s[0] for s in segs[1:])}) if c in (x0, x1) or len(segs) <= 12)
     legend = " ".join(f'<span class="sw" style="background:{index_colour(v)}"></span>{lab}'
                       for v, lab in ((10, "&lt;25"), (30, "25–40"), (50, "40–55"), (60, "55–70"), (80, "70–85"),
                                      (90, "≥85")))
+    legend += f' <span class="sw" style="background:{NOT_ASSESSED_FILL}"></span>not assessed (not seen well enough)'
+
     return (f'<section id="segments"><h2>Road condition by segment (PCI-like index 0–100, along chainage)</h2>'
             f'<svg id="segment-strip" viewBox="0 0 {W:.0f} {H:.0f}" preserveAspectRatio="none">{"".join(parts)}'
             f'{ticks}</svg><div class="legend">{legend}</div></section>')
@@ -217,6 +259,8 @@ td.nophoto { color:#8a3b00; font-size:11.5px; max-width:220px; white-space:norma
 #segment-strip { width:100%; height:64px; display:block; }
 #segment-strip text { font-size:13px; fill:#111; } #segment-strip text.tick { font-size:11px; fill:#5c6677; }
 #segments .legend { font-size:12px; color:var(--muted); margin-top:4px; }
+.notice.not-assessed { background:#eeeeee; border-left:4px solid #757575; margin-bottom:8px; }
+.notice.not-assessed ul { margin:4px 0 0 18px; padding:0; font-size:12px; }
 details#research > summary { cursor:pointer; font-size:16px; font-weight:600; }
 details#research[open] > summary { margin-bottom:10px; }
 .plegend { font-size:12px; }
@@ -245,5 +289,5 @@ PRINT_CSS = r"""
 }
 """
 
-__all__ = ["FIELD_CSS", "PRINT_CSS", "PRIORITY_FILL", "PRIORITY_ORDER", "order_records", "paper_severity",
-           "segment_strip", "size_text", "worklist_table"]
+__all__ = ["FIELD_CSS", "NOT_ASSESSED_FILL", "PRINT_CSS", "PRIORITY_FILL", "PRIORITY_ORDER", "detector_banner",
+           "not_assessed_notice", "order_records", "paper_severity", "segment_strip", "size_text", "worklist_table"]

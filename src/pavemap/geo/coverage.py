@@ -5,14 +5,21 @@ of the GeoPackage's ``survey`` layer. A cell counts as seen when its centre, at 
 projects inside a view's image in front of the camera and within the range. Computed on a coarse
 grid (``COARSE_RES_M``) and views at least ``VIEW_STEP_M`` apart, then looked up at full resolution:
 the edge is good to a coarse cell, which is all nodata needs.
+
+The same per-view test also grades how *well* a view saw a point (:func:`view_resolution`: pixels per cm of
+road) and, over all views, each point's best resolution and how many views reached a given one
+(:func:`ground_resolution`), which decides whether a road segment can be assessed
+(:mod:`pavemap.maintain.assessment`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
+from pavemap.geometry.camera import project
 from pavemap.geometry.grid import GridSpec
-from pavemap.types import Sequence
+from pavemap.types import Camera, Sequence
 
 SURVEY_RANGE_M = 30.0  # beyond this a detection's position is too uncertain to call the road surveyed
 COARSE_RES_M = 0.5
@@ -33,9 +40,10 @@ def _heights(surface: object | None, g: GridSpec) -> tuple[np.ndarray, np.ndarra
     return np.where(inside, H[jc, ic], 0.0), inside & V[jc, ic]
 
 
-def _views(seq: Sequence) -> list[tuple[np.ndarray, object]]:
+def _views(seq: Sequence) -> list[tuple[np.ndarray, Camera]]:
     """(T_world_cam, Camera) of views at least VIEW_STEP_M apart per camera."""
-    out, last = [], {}
+    out: list[tuple[np.ndarray, Camera]] = []
+    last: dict[str, np.ndarray] = {}
     for f in seq.frames:
         for name, v in f.views.items():
             c = v.T_world_cam[:3, 3]
@@ -54,22 +62,71 @@ def coarse_coverage(seq: Sequence, grid: GridSpec, surface: object | None = None
     seen = np.zeros(g.shape, dtype=bool)
     xs, ys = g.xs(), g.ys()
     for T, cam in _views(seq):
-        C, R, K = T[:3, 3], T[:3, :3], np.asarray(cam.K, dtype=np.float64)
+        C = T[:3, 3]
         c0, c1 = np.searchsorted(xs, [C[0] - max_range, C[0] + max_range])
         r0, r1 = np.searchsorted(ys, [C[1] - max_range, C[1] + max_range])
         if c1 <= c0 or r1 <= r0:
             continue
         X, Y = np.meshgrid(xs[c0:c1], ys[r0:r1])
-        P = np.stack([X, Y, Z[r0:r1, c0:c1]], axis=-1) - C
-        Xc = P @ R  # world -> camera: R^T (X - C), row vectors
-        z = Xc[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = K[0, 0] * Xc[..., 0] / z + K[0, 2]
-            v = K[1, 1] * Xc[..., 1] / z + K[1, 2]
-        hit = (z > 0.1) & (u >= -0.5) & (u < cam.width - 0.5) & (v >= -0.5) & (v < cam.height - 0.5)
-        hit &= np.hypot(P[..., 0], P[..., 1]) <= max_range
+        P = np.stack([X, Y, Z[r0:r1, c0:c1]], axis=-1).reshape(-1, 3)
+        hit = (view_resolution(cam, T, P, max_range) > 0).reshape(X.shape)
         seen[r0:r1, c0:c1] |= hit
     return seen & ok, g
+
+
+def view_resolution(cam: Camera, T_world_cam: np.ndarray, points: np.ndarray, max_range: float = SURVEY_RANGE_M,
+                    ego: np.ndarray | None = None, scale: float = 1.0) -> np.ndarray:
+    """(N,) float64 pixels per cm with which one view sees world points (N, 3) on a level road; 0 where it
+    does not see them: behind or within 0.1 m of the camera plane, outside the image, farther than ``max_range``
+    horizontally, or on ``ego`` ((H, W) bool, the camera's ego mask at full resolution).
+
+    The scale is the area-equivalent one, sqrt(pixel area of 1 cm² of road): a level road patch dA at X, camera
+    centre C and camera depth z covers fx fy |X_z - C_z| / z³ dA pixels (the plane homography's Jacobian), so
+    the foreshortened direction counts. ``scale`` resizes the image (the detector's input: px/cm times scale).
+    """
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    uv, z = project(cam.K, T_world_cam, torch.from_numpy(P))
+    u, v, z = uv[:, 0].numpy(), uv[:, 1].numpy(), z.numpy()
+    C = np.asarray(T_world_cam, dtype=np.float64)[:3, 3]
+    hit = (z > 0.1) & (u >= -0.5) & (u < cam.width - 0.5) & (v >= -0.5) & (v < cam.height - 0.5)
+    hit &= np.hypot(P[:, 0] - C[0], P[:, 1] - C[1]) <= max_range
+    if ego is not None and hit.any():
+        iu = np.clip(np.rint(u[hit]).astype(np.int64), 0, ego.shape[1] - 1)
+        iv = np.clip(np.rint(v[hit]).astype(np.int64), 0, ego.shape[0] - 1)
+        hit[np.nonzero(hit)[0][ego[iv, iu]]] = False
+    K = np.asarray(cam.K, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px2 = K[0, 0] * K[1, 1] * np.abs(P[:, 2] - C[2]) / np.maximum(z, 0.1) ** 3  # pixels per m²
+    return np.where(hit, np.maximum(np.sqrt(px2) * float(scale) / 100.0, 1e-12), 0.0)  # seen: > 0
+
+
+def ground_resolution(seq: Sequence, points: np.ndarray, need_px_per_cm: float, scale: dict[str, float] | None = None,
+                      max_range: float = SURVEY_RANGE_M) -> tuple[np.ndarray, np.ndarray]:
+    """How well the drive saw world points (N, 3): (N,) float64 best px/cm of any view (:func:`view_resolution`,
+    times the camera's ``scale``, default 1) and (N,) int64 the number of views at ``need_px_per_cm`` or finer.
+
+    Views at least ``VIEW_STEP_M`` apart per camera (a car standing still does not multiply its views), ego masks
+    applied; each view projects only the points within ``max_range`` of it (a KD-tree over the points' x, y).
+    """
+    from scipy.spatial import cKDTree
+
+    from pavemap.io.egomask import ego_mask_at
+
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    best, n = np.zeros(len(P)), np.zeros(len(P), dtype=np.int64)
+    views = _views(seq)
+    if not len(P) or not views:
+        return best, n
+    near = cKDTree(P[:, :2]).query_ball_point(np.array([T[:2, 3] for T, _ in views]), r=max_range)
+    masks = {c.name: ego_mask_at(seq, c.name, c.width, c.height) for c in seq.cameras.values()}
+    for (T, cam), idx in zip(views, near, strict=True):
+        if not idx:
+            continue
+        idx = np.asarray(idx, dtype=np.int64)
+        r = view_resolution(cam, T, P[idx], max_range, masks.get(cam.name), (scale or {}).get(cam.name, 1.0))
+        best[idx] = np.maximum(best[idx], r)
+        n[idx] += r >= need_px_per_cm
+    return best, n
 
 
 def coverage_mask(seq: Sequence, grid: GridSpec, surface: object | None = None,
@@ -97,4 +154,5 @@ def coverage_polygon(mask: np.ndarray, grid: GridSpec) -> object | None:
     return geom if not geom.is_empty else None
 
 
-__all__ = ["SURVEY_RANGE_M", "coarse_coverage", "coverage_mask", "coverage_polygon"]
+__all__ = ["SURVEY_RANGE_M", "coarse_coverage", "coverage_mask", "coverage_polygon", "ground_resolution",
+           "view_resolution"]

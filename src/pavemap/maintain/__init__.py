@@ -6,7 +6,8 @@ and the road cut into segments with a condition index. Modules, following the da
 - :mod:`.chainage`  distance along the route and lateral offset (one implementation for all users);
 - :mod:`.measure`   pothole depth / volume, crack length / orientation, alligator area from the 3D surface;
 - :mod:`.policy`    the maintenance policy (YAML a city can replace): severity levels, certainty, urgency;
-- :mod:`.segments`  chainage segments with a PCI-like condition index.
+- :mod:`.segments`  chainage segments with a PCI-like condition index;
+- :mod:`.assessment` where that index may be given at all ("not assessed" is not "perfect").
 
 Record keys written into ``DefectInstance.extra`` are listed in
 :data:`pavemap.export.geojson.PROPERTY_SCHEMA` (the one defect schema).
@@ -19,6 +20,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pavemap.maintain.assessment import DetectorCheck, apply_detector_check, assess_coverage
 from pavemap.maintain.chainage import chainage, route_polyline
 from pavemap.maintain.policy import (
     POSITIONS,
@@ -92,7 +94,9 @@ def assess_instances(instances: list[DefectInstance], route: np.ndarray | None,
 def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels: np.ndarray | None = None,  # noqa: ANN001
            observed=None, policy: Policy | str | os.PathLike | None = None, segment_m: float = 100.0,  # noqa: ANN001
            lane_width_m: float | None = None, samples: np.ndarray | None = None,
-           measure: MeasureConfig | None = None, floor_sweep: bool = False) -> list[Segment]:
+           measure: MeasureConfig | None = None, floor_sweep: bool = False, *,
+           scale: dict[str, float] | None = None, min_defect_px: float | None = None,
+           check: DetectorCheck | None = None) -> list[Segment]:
     """The maintenance stage: measure, grade and rank the fused instances (in place) and cut the road into segments.
 
     instances: stage 3's :class:`DefectInstance` list; seq: the drive (its trajectory is the route);
@@ -104,11 +108,15 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
     pixels under the potholes are added (:func:`pavemap.maintain.samples.depth_samples`); measure: the
     :class:`~pavemap.maintain.measure.MeasureConfig` (default: ``surface_floor`` False, a pothole's depth only
     from measurements inside it, see :func:`_pothole_samples`); floor_sweep: without a depth layer, measure the
-    floors by :func:`pavemap.maintain.floor_sweep.floor_samples`.
+    floors by :func:`pavemap.maintain.floor_sweep.floor_samples`. ``scale`` (detector input pixels per image pixel
+    per camera, :func:`pavemap.maintain.assessment.input_scale`; None: 1), ``min_defect_px`` (None: the policy's)
+    and ``check`` (:func:`pavemap.maintain.assessment.detector_check`, or None) decide which segments are
+    "not assessed" (:mod:`pavemap.maintain.assessment`).
 
     Runs :func:`pavemap.maintain.measure.measure_instances` (depth, volume, crack length, orientation) ->
     chainage, offset, lane position -> severity level, certainty -> urgency, priority rank ->
-    segments (each instance's ``extra["segment"]``). Returns the segments (``FusionResult.segments``).
+    segments (each instance's ``extra["segment"]``) -> coverage, not assessed. Returns the segments
+    (``FusionResult.segments``).
     """
     from pavemap.maintain.measure import MeasureConfig, measure_instances
 
@@ -129,6 +137,8 @@ def assess(instances: list[DefectInstance], seq: Sequence, surface=None, labels:
     segments = build_segments(route, records, pol, segment_m, lane_width_m)
     for inst, r in zip(instances, records, strict=True):
         inst.extra["segment"] = r.get("segment")
+    assess_coverage(segments, seq, pol, surface, observed, scale, min_defect_px)
+    apply_detector_check(segments, check)
     return segments
 
 
@@ -206,19 +216,28 @@ def adopt_footprint_sizes(instances: list[DefectInstance]) -> None:
             ex["crack_length_m"] = float(length)
 
 
-def summary(instances: list[DefectInstance], segments: list[Segment]) -> dict:
-    """``metrics.json``'s ``maintenance`` entry: defects per priority, severity level and certainty; the index."""
+def summary(instances: list[DefectInstance], segments: list[Segment], check: DetectorCheck | None = None) -> dict:
+    """``metrics.json``'s ``maintenance`` entry: defects per priority, severity level and certainty; the index over
+    the assessed segments only; assessed and not-assessed segments and their length; the detector check."""
     from collections import Counter
 
     def count(key: str) -> dict:
         return dict(Counter(str(i.extra.get(key)) for i in instances if i.extra.get(key) is not None))
 
-    pci = [s.pci for s in segments]
-    return {"priority": dict(Counter(i.priority for i in instances)), "severity_level": count("severity_level"),
-            "certainty": count("certainty"), "segments": len(segments),
-            "pci_mean": round(float(np.mean(pci)), 1) if pci else None,
-            "pci_min": round(float(np.min(pci)), 1) if pci else None,
-            "index": "PCI-like, not a certified ASTM D6433 survey"}
+    pci = [s.pci for s in segments if s.pci is not None]
+    out = {"priority": dict(Counter(i.priority for i in instances)), "severity_level": count("severity_level"),
+           "certainty": count("certainty"), "segments": len(segments),
+           "pci_mean": round(float(np.mean(pci)), 1) if pci else None,
+           "pci_min": round(float(np.min(pci)), 1) if pci else None,
+           "index": "PCI-like, not a certified ASTM D6433 survey"}
+    for name, sel in (("assessed", True), ("not_assessed", False)):
+        mine = [s for s in segments if s.assessed is sel]
+        out[f"{name}_segments"] = len(mine)
+        out[f"{name}_length_m"] = round(sum(s.end_m - s.start_m for s in mine), 1)
+    out["not_assessed_reasons"] = dict(Counter(s.not_assessed_reason for s in segments if not s.assessed))
+    if check is not None:
+        out["detector_confidence"] = check.to_dict()
+    return out
 
 
 __all__ = ["UNASSESSED", "MaintenanceConfig", "Policy", "Segment", "adopt_footprint_sizes", "assess",

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
+from pavemap.maintain.config import MaintenanceConfig
 from pavemap.types import DEFECT_CODES
 
 LEVELS: tuple[str, ...] = ("low", "medium", "high")
@@ -43,7 +44,7 @@ MEASURE_ALIASES: dict[str, tuple[tuple[str, float], ...]] = {
     "depth_mean_mm": (("depth_mean_m", 1000.0),),
     "crack_length_m": (("length_m", 1.0),),
 }
-_TOP_KEYS = ("version", "severity", "certainty", "lanes", "urgency", "segments")
+_TOP_KEYS = ("version", "severity", "certainty", "lanes", "urgency", "segments", "assessment")
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,31 @@ class Bands:
         """The band holding ``value`` (negative values count as 0; an edge takes the higher band)."""
         k = int(np.searchsorted(np.asarray(self.lower), max(float(value), 0.0), side="right")) - 1
         return self.names[max(k, 0)]
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """When a segment's index may be given at all (policy ``assessment``; the built-in YAML says why each number).
+
+    A road cell is *covered* when at least ``min_views`` views saw it at ``need_px_per_cm`` or finer at the
+    detector's input: ``min_defect_px`` pixels across the smallest defect the policy cares about,
+    ``min_defect_m`` (:mod:`pavemap.maintain.assessment`). A segment is assessed when covered cells make up
+    at least ``min_covered_share`` of its corridor. A run is *low-confidence* when its detections at or above
+    ``filter.tau_conf`` number fewer than ``min_confident_per_image`` per image and make up less than
+    ``min_confident_share`` of the detector's boxes; its segments are then not assessed either.
+    """
+
+    min_defect_m: float = 0.2
+    min_defect_px: float = 8.0
+    min_views: int = 1
+    min_covered_share: float = 0.5
+    min_confident_per_image: float = 0.5
+    min_confident_share: float = 0.25
+
+    def need_px_per_cm(self, min_defect_px: float | None = None) -> float:
+        """Pixels per cm of road (at the detector's input) the smallest defect needs; ``min_defect_px``
+        overrides the policy's pixels (the simulated detector's own need)."""
+        return float(min_defect_px or self.min_defect_px) / (100.0 * self.min_defect_m)
 
 
 @dataclass(frozen=True)
@@ -81,6 +107,7 @@ class Policy:
     merge_short_fraction: float
     deduct: dict[int, dict[str, float]]  # class -> {knee, low, medium, high}
     grades: tuple[float, ...]
+    assessment: Assessment = Assessment()
 
 
 # ---------------------------------------------------------------------------- loading and checks
@@ -240,10 +267,23 @@ def _segments(d: object, where: str) -> dict:
             "deduct": deduct, "grades": grades}
 
 
+def _assessment(d: object, where: str) -> Assessment:
+    """The optional ``assessment`` section (a policy without it gets :class:`Assessment`'s defaults)."""
+    if d is None:
+        return Assessment()
+    d = _map(d, where, tuple(Assessment.__dataclass_fields__), required=False)
+    lim = {"min_defect_m": (0.01, 10.0), "min_defect_px": (1.0, 1000.0), "min_views": (1, 1000),
+           "min_covered_share": (0.0, 1.0), "min_confident_per_image": (0.0, 1000.0), "min_confident_share": (0.0, 1.0)}
+    v = {k: _number(d[k], f"{where}.{k}", *lim[k]) for k in d}
+    if "min_views" in v:
+        v["min_views"] = int(v["min_views"])
+    return Assessment(**v)
+
+
 def policy_from_dict(data: object, source: str = "<policy>") -> Policy:
     """Check a parsed policy mapping; errors name ``source`` and the entry."""
     data = _map(data, source, _TOP_KEYS, required=False)
-    for k in _TOP_KEYS[1:]:
+    for k in _TOP_KEYS[1:-1]:  # assessment is optional (older policies lack it)
         if k not in data:
             raise _err(source, f"missing section {k!r}")
     sev, fb = _severity(data["severity"], f"{source}: severity")
@@ -255,7 +295,8 @@ def policy_from_dict(data: object, source: str = "<policy>") -> Policy:
                   certainty=_certainty(data["certainty"], f"{source}: certainty"),
                   lane_width_m=lw, wheel_path_offset_m=wp, wheel_path_half_width_m=hw,
                   **_urgency(data["urgency"], f"{source}: urgency"),
-                  **_segments(data["segments"], f"{source}: segments"))
+                  **_segments(data["segments"], f"{source}: segments"),
+                  assessment=_assessment(data.get("assessment"), f"{source}: assessment"))
 
 
 @functools.lru_cache(maxsize=8)
@@ -394,34 +435,7 @@ def priority_ranks(priorities: list[str], scores: list[float], ids: list[int]) -
     return ranks
 
 
-@dataclass
-class MaintenanceConfig:
-    """The ``maintenance`` section of the run config (:mod:`pavemap.config`).
-
-    - ``policy``: a maintenance policy YAML (:func:`load_policy`), "" for the built-in one;
-    - ``segment_m``: length of the road segments along the route (m);
-    - ``lane_width_m``: lane width for the lane position; None: the policy's ``lanes.lane_width_m``;
-    - ``floor_sweep``: without a depth layer, measure potholes' floors by a multi-view sweep of the images
-      around each (:mod:`pavemap.maintain.floor_sweep`; full-size images); False (default): their depth is not
-      measured without depth. Off by default: it measures few potholes, and plain road on the real nuScenes
-      clip read as a dent (README, "Pothole depth from the images").
-    """
-
-    policy: str = ""
-    segment_m: float = 100.0
-    lane_width_m: float | None = None
-    floor_sweep: bool = False
-
-    def validate(self) -> None:
-        """Raise PavemapError naming the first bad field (a bad policy file names its entry)."""
-        if not (math.isfinite(self.segment_m) and 1.0 <= self.segment_m <= 100_000.0):
-            raise PavemapError(f"maintenance.segment_m must be in [1, 100000] m, got {self.segment_m}")
-        if self.lane_width_m is not None and not (math.isfinite(self.lane_width_m) and 1.5 <= self.lane_width_m <= 8):
-            raise PavemapError(f"maintenance.lane_width_m must be in [1.5, 8] m or none, got {self.lane_width_m}")
-        load_policy(self.policy)
-
-
 __all__ = ["BUILTIN_POLICY", "CERTAINTIES", "LEVELS", "MEASURE_ALIASES", "POSITIONS", "PRIORITIES", "UNASSESSED",
-           "Bands", "MaintenanceConfig", "Policy", "certainty", "check_bands", "lane_position", "lane_positions",
-           "load_policy", "measure_value", "policy_from_dict", "priority_ranks", "severity_level", "severity_of",
-           "urgency"]
+           "Assessment", "Bands", "MaintenanceConfig", "Policy", "certainty", "check_bands", "lane_position",
+           "lane_positions", "load_policy", "measure_value", "policy_from_dict", "priority_ranks", "severity_level",
+           "severity_of", "urgency"]

@@ -52,9 +52,16 @@ SEGMENT_SCHEMA: tuple[tuple[str, str, str, str], ...] = (
     ("chainage_end_m", "float", "m", "chainage where it ends"),
     ("length_m", "float", "m", "its length along the route"),
     ("corridor_area_m2", "float", "m²", "area of its corridor (the density's denominator)"),
-    ("pci", "float", "0-100", "PCI-like condition index (100 = no defects; not a certified ASTM D6433 survey)"),
-    ("grade", "int", "1-5", "condition grade 1 very good .. 5 very bad, from the index"),
-    ("rating", "str", "", "ASTM D6433 rating word of the index (good .. failed)"),
+    ("assessed", "bool", "", "whether the survey saw the segment well enough for an index (false: not assessed)"),
+    ("pci", "float", "0-100", "PCI-like condition index (100 = no defects; not a certified ASTM D6433 survey); "
+                              "null when not assessed"),
+    ("grade", "int", "1-5", "condition grade 1 very good .. 5 very bad, from the index; null when not assessed"),
+    ("rating", "str", "", "ASTM D6433 rating word of the index (good .. failed); null when not assessed"),
+    ("not_assessed_reason", "str", "", "why the segment has no index (empty when assessed)"),
+    ("coverage_share", "float", "0-1", "share of its road seen finely enough for the smallest defect the policy "
+                                       "cares about (policy assessment)"),
+    ("px_per_cm_median", "float", "px/cm", "median over its road of the best resolution any view gave, in pixels "
+                                           "per cm at the detector's input"),
     ("defects", "int", "count", "defects in the segment"),
     *((f"n_{c}", "int", "count", f"{c} defects") for c in DEFECT_CODES),
     *((f"length_m_{c}", "float", "m", f"summed length of its {c} defects (cracks: skeleton length)")
@@ -80,22 +87,28 @@ class Segment:
     areas_m2: dict[str, float] = field(default_factory=dict)
     deducts: list[dict] = field(default_factory=list)  # {code, level, density_pct, deduct}
     total_deduct: float = 0.0
-    corrected_deduct: float = 0.0
-    pci: float = 100.0
-    grade: int = 1
-    rating: str = "good"
+    corrected_deduct: float | None = 0.0
+    pci: float | None = 100.0  # None: not assessed (pavemap.maintain.assessment)
+    grade: int | None = 1
+    rating: str | None = "good"
+    assessed: bool = True
+    not_assessed_reason: str = ""
+    coverage_share: float | None = None  # None: coverage not evaluated
+    px_per_cm_median: float | None = None
 
     def record(self) -> dict:
         """The flat record of :data:`SEGMENT_SCHEMA` (segments.csv row, GIS feature properties)."""
         r = {"segment": self.id, "chainage_start_m": round(self.start_m, 2), "chainage_end_m": round(self.end_m, 2),
              "length_m": round(self.end_m - self.start_m, 2), "corridor_area_m2": round(self.corridor_area_m2, 1),
-             "pci": round(self.pci, 1), "grade": self.grade, "rating": self.rating,
+             "assessed": self.assessed, "pci": None if self.pci is None else round(self.pci, 1),
+             "grade": self.grade, "rating": self.rating, "not_assessed_reason": self.not_assessed_reason,
+             "coverage_share": self.coverage_share, "px_per_cm_median": self.px_per_cm_median,
              "defects": int(sum(self.counts.values()))}
         r.update({f"n_{c}": int(self.counts.get(c, 0)) for c in DEFECT_CODES})
         r.update({f"length_m_{c}": round(self.lengths_m.get(c, 0.0), 3) for c in DEFECT_CODES})
         r.update({f"area_m2_{c}": round(self.areas_m2.get(c, 0.0), 3) for c in DEFECT_CODES})
         r["total_deduct"] = round(self.total_deduct, 2)
-        r["corrected_deduct"] = round(self.corrected_deduct, 2)
+        r["corrected_deduct"] = None if self.corrected_deduct is None else round(self.corrected_deduct, 2)
         r["deducts"] = "; ".join(f"{d['code']} {d['level']} {d['density_pct']:.3g}%: {d['deduct']:.1f}"
                                  for d in self.deducts)
         return r

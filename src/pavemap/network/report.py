@@ -21,6 +21,8 @@ PAGE = "network.html"
 STATUS_COLOURS = {"new": "#d62728", "grown": "#ff7f0e", "unchanged": "#1f77b4", "not seen again": "#9467bd"}
 #: Fields a segments layer may carry its condition in (0-100, higher is better), first found wins.
 CONDITION_FIELDS = ("pci", "condition_index", "condition", "index", "score")
+#: Colour of a segment without an index (issue 41: not assessed is not perfect).
+NOT_ASSESSED = "#b0b0b0"
 _W, _H = 900.0, 420.0
 
 
@@ -50,6 +52,14 @@ def _read_layer(gpkg: Path, layer: str) -> tuple[list, list[dict]]:
     return [None if g is None else shapely.from_wkb(g) for g in geoms], recs
 
 
+def _assessed(rec: dict, field: str | None) -> bool:
+    """Whether a segments-layer record has a condition index (``assessed`` not false and a finite value)."""
+    if field is None or rec.get("assessed") in (False, 0):
+        return False
+    v = rec.get(field)
+    return isinstance(v, int | float) and bool(np.isfinite(v))
+
+
 def _condition_colour(v: float) -> str:
     """0 (failed) red -> 50 yellow -> 100 (good) green."""
     t = float(np.clip(v / 100.0, 0, 1))
@@ -77,9 +87,12 @@ def _svg(gpkg: Path) -> str:
     out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{_W:.0f}" height="{_H:.0f}" class="map">']
     for g in drives:
         out += [f'<polyline points="{xy(c)}" fill="none" stroke="#999" stroke-width="2"/>' for c in lines(g)]
-    field = next((f for f in CONDITION_FIELDS if seg_recs and isinstance(seg_recs[0].get(f), int | float)), None)
+    field = next((f for f in CONDITION_FIELDS if any(isinstance(r.get(f), int | float) for r in seg_recs)), None)
+    n_na = 0
     for g, r in zip(segs, seg_recs, strict=True):
-        col = _condition_colour(float(r[field])) if field and r.get(field) is not None else "#555"
+        na = not _assessed(r, field)  # a segment without an index is grey, never a condition colour
+        n_na += na
+        col = NOT_ASSESSED if na else _condition_colour(float(r[field])) if field else "#555"
         out += [f'<polyline points="{xy(c)}" fill="none" stroke="{col}" stroke-width="5" opacity="0.8"/>'
                 for c in lines(g)]
     for g, r in zip(dgeoms, drecs, strict=True):
@@ -91,7 +104,9 @@ def _svg(gpkg: Path) -> str:
                    f'<title>#{r.get("id")} {_esc(r.get("code"))} {_esc(r.get("status"))}</title></circle>')
     out.append("</svg>")
     legend = " ".join(f'<span style="color:{c}">&#9679; {s}</span>' for s, c in STATUS_COLOURS.items())
-    seg_note = (f"; segments coloured by {field} (red 0 - green 100)" if field else
+    seg_note = (f"; segments coloured by {field} (red 0 - green 100)" + (
+        f'; <span style="color:{NOT_ASSESSED}">light grey</span>: {n_na} segments not assessed (not seen well '
+        "enough for an index)" if n_na else "") if field else
                 "; no condition segments in these runs" if not segs else "; segments without a condition field")
     return "".join(out) + f"<p>{legend} &nbsp; grey: trajectories{seg_note}</p>"
 
