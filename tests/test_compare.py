@@ -59,7 +59,7 @@ def _by_change(out):
         for k, g in enumerate(geoms):
             vals = (f[k] for f in fields)
             p = {n: (v.item() if hasattr(v, "item") else v) for n, v in zip(meta["fields"], vals, strict=True)}
-            p.update({n: None for n in ("id_a", "id_b") if p[n] == -1})
+            p.update({n: None for n in ("id_a", "id_b") if p[n] is None or p[n] == -1 or p[n] != p[n]})  # NULL
             p["reasons"] = [r for r in p["reasons"].split("; ") if r]
             feats.append({"properties": p, "geometry": shapely.geometry.mapping(shapely.from_wkb(g))})
         fc = {"features": feats, "crs_wkt": meta["crs"]}

@@ -161,20 +161,20 @@ def test_auto_backend_fits_the_input(tiny_seq, tmp_path, monkeypatch):
     det, why = resolve_backend(DetectorConfig(), tiny_seq)
     assert det.backend == "sim" and "truth" in why
     own = _without_truth(tiny_seq, tmp_path)
-    fake = tmp_path / "models" / "pavemap-yolov8n-rdd2022-cn.pt"
+    fake = tmp_path / "models" / "pavemap-yolov5n-rdd2022.pt"
     fake.parent.mkdir()
     fake.write_bytes(b"weights")
     monkeypatch.setattr(backends, "weights_candidates", lambda: [fake])
     det, why = resolve_backend(DetectorConfig(), own)
     assert det.backend == "yolo" and det.weights == str(fake) and "shipped" in why
     monkeypatch.setattr(backends, "weights_candidates", lambda: [tmp_path / "nowhere" / "w.pt"])
-    with pytest.raises(PavemapError, match="models/pavemap-yolov8n-rdd2022-cn.pt.*missing.*--weights"):
+    with pytest.raises(PavemapError, match="pavemap-yolov5n-rdd2022.pt.*missing.*--weights"):
         resolve_backend(DetectorConfig(), own)
     assert DetectorConfig().backend == "auto"
 
 
 def test_shipped_weights_are_found_from_the_package():
-    assert backends.shipped_weights().name == "pavemap-yolov8n-rdd2022-cn.pt"
+    assert backends.shipped_weights().name == "pavemap-yolov5n-rdd2022.pt"
 
 
 def test_sim_on_an_imported_drive_is_a_clear_error(tiny_seq, tmp_path):
@@ -191,7 +191,7 @@ def test_run_without_config_uses_the_rig_preset(tiny_seq, tmp_path, monkeypatch,
 
     seen = {}
 
-    def fake_run(seq, cfg, detector, device, out, progress):  # noqa: ANN001, ANN202
+    def fake_run(seq, cfg, detector, device, out, progress, semantics=None):  # noqa: ANN001, ANN202
         seen["cfg"] = cfg
         return pipeline.RunResult(out, [], None, None, None, {})
 

@@ -3,7 +3,8 @@
 Runs (``--runs``, each a child process sharing the machine's cores):
 - ``coco``: YOLOv5n (ultralytics' anchor-free ``yolov5n.yaml``) from the COCO start
   (``--coco-start``, made by :func:`pavemap.detect.pretrained.coco_start_checkpoint`);
-- ``shipped``: the previous default ``models/pavemap-yolov8n-rdd2022-cn.pt`` fine-tuned on the same data;
+- ``shipped``: the previous default (YOLOv8n trained on China_MotorBike only,
+  ``models/pavemap-yolov8n-rdd2022-cn.pt`` before 2026-12-04) fine-tuned on the same data;
 - ``coco-nobg``: the COCO start without the Czech background frames.
 
 Data: the downscaled copies of ``prepare_data.py`` under ``--data`` (``cn/`` China_MotorBike train,

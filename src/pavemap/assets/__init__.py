@@ -3,8 +3,9 @@
 ultralytics downloads ``Arial.ttf`` into its config folder the first time it draws
 labels, and keeps its settings there. pavemap never lets it reach the network: before
 ultralytics is imported, :func:`prepare_ultralytics` sets ``YOLO_OFFLINE=1``, points
-``YOLO_CONFIG_DIR`` at a folder of ours (``.yolo/`` in the working directory unless the
-user set ``YOLO_CONFIG_DIR`` or ``PAVEMAP_YOLO_DIR``) and copies matplotlib's bundled
+``YOLO_CONFIG_DIR`` at a folder of ours (``ultralytics/`` in the user's cache,
+:mod:`pavemap.user_cache`, unless the user set ``YOLO_CONFIG_DIR`` or ``PAVEMAP_YOLO_DIR``: never the
+working directory) and copies matplotlib's bundled
 DejaVuSans there under the names ultralytics looks for. Nothing big is committed: the
 font is copied from the installed matplotlib at run time.
 """
@@ -32,7 +33,7 @@ def prepare_ultralytics(config_dir: str | os.PathLike | None = None) -> Path:
 
     Must run before ``import ultralytics`` (ultralytics reads the variables at import).
     ``config_dir`` overrides the folder; the default is ``$YOLO_CONFIG_DIR``, else
-    ``$PAVEMAP_YOLO_DIR``, else ``./.yolo``. Returns ``<config_dir>/Ultralytics``, where
+    ``$PAVEMAP_YOLO_DIR``, else ``<user cache>/ultralytics``. Returns ``<config_dir>/Ultralytics``, where
     ultralytics keeps settings.json and looks for its fonts.
     """
     os.environ["YOLO_OFFLINE"] = "1"
@@ -42,7 +43,9 @@ def prepare_ultralytics(config_dir: str | os.PathLike | None = None) -> Path:
     elif os.environ.get("YOLO_CONFIG_DIR"):
         base = Path(os.environ["YOLO_CONFIG_DIR"])
     else:
-        base = Path(os.environ.get("PAVEMAP_YOLO_DIR", Path.cwd() / ".yolo"))
+        from pavemap.user_cache import user_cache_dir
+
+        base = Path(os.environ.get("PAVEMAP_YOLO_DIR") or user_cache_dir() / "ultralytics")
     base = base.expanduser().resolve()
     os.environ["YOLO_CONFIG_DIR"] = str(base)
     settings_dir = base / "Ultralytics"

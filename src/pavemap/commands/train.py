@@ -13,7 +13,11 @@ def register(app: typer.Typer) -> None:
     @app.command("train-detector")
     def train_detector_cmd(
         data: Path = typer.Argument(..., help="ultralytics dataset yaml (path, train, val, names D00/D10/D20/D40)."),
-        model: str = typer.Option("yolov8n.yaml", help="Model yaml (random init, no download) or a local .pt."),
+        model: str = typer.Option("yolov5n.yaml", help="Model yaml (random init, no download) or a local .pt."),
+        init_from: Path | None = typer.Option(
+            None, "--init-from",
+            help="A YOLOv5 COCO checkpoint (e.g. ultralytics' yolov5n.pt) whose backbone and neck start --model.",
+        ),
         epochs: int = typer.Option(100, help="Epochs (ignored when --hours is given)."),
         hours: float | None = typer.Option(None, help="Wall-time budget; ultralytics fits the epochs to it."),
         imgsz: int = typer.Option(640, help="Training image size."),
@@ -30,6 +34,13 @@ def register(app: typer.Typer) -> None:
 
         from pavemap.detect.yolo import train_detector
 
+        if init_from is not None:
+            if not model.endswith((".yaml", ".yml")):
+                raise typer.BadParameter(f"--init-from starts a model yaml (e.g. yolov5n.yaml), not {model}")
+            from pavemap.detect.pretrained import coco_start_checkpoint
+
+            model = str(coco_start_checkpoint(init_from, project / name / "coco_start.pt", model_yaml=model))
+            typer.echo(f"COCO start from {init_from} -> {model}")
         best = train_detector(
             data, model=model, epochs=epochs, imgsz=imgsz, device=device, batch=batch, project=project,
             name=name, time_hours=hours, workers=workers, resume=resume,

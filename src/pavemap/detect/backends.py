@@ -13,15 +13,19 @@ from pathlib import Path
 from pavemap.detect.config import DetectorConfig
 from pavemap.errors import PavemapError
 from pavemap.types import Sequence
+from pavemap.user_cache import weight_dirs
 
-SHIPPED_WEIGHTS = "models/pavemap-yolov8n-rdd2022-cn.pt"
+#: the default detector's file name; it ships inside the package (``pavemap/weights/``, card beside it)
+SHIPPED_WEIGHTS = "pavemap-yolov5n-rdd2022.pt"
 TRUTH_DEFECTS = "truth/defects.geojson"
 
 
 def weights_candidates() -> list[Path]:
-    """Where the shipped weights are looked for: the repository (source checkout), then the working folder."""
-    repo = Path(__file__).resolve().parents[3]  # src/pavemap/detect/backends.py -> repository root
-    return [repo / SHIPPED_WEIGHTS, Path.cwd() / SHIPPED_WEIGHTS]
+    """Where the shipped weights are looked for: inside the installed package, then the user's weight folders."""
+    from importlib.resources import files
+
+    packaged = Path(str(files("pavemap") / "weights" / SHIPPED_WEIGHTS))
+    return [packaged, *(d / SHIPPED_WEIGHTS for d in weight_dirs())]
 
 
 def shipped_weights() -> Path:

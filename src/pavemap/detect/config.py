@@ -25,7 +25,8 @@ class DetectorConfig:
     - ``backend``: ``auto`` (``sim`` where the sequence has synthetic truth ``truth/defects.geojson``,
       else ``yolo`` with the shipped weights), ``sim`` (simulated detector, synthetic sequences only),
       ``yolo`` (ultralytics weights), ``file`` (a detections JSONL or a folder of YOLO txt files).
-    - ``weights``: yolo weights (.pt); None = the shipped ``models/pavemap-yolov8n-rdd2022-cn.pt``.
+    - ``weights``: yolo weights (.pt); None = the shipped
+      ``pavemap/weights/pavemap-yolov5n-rdd2022.pt`` (inside the package).
     - ``file``: file backend input; None = ``SEQ/detections.jsonl``.
     - ``seed``: sim random seed. ``imgsz`` / ``conf`` / ``batch`` / ``class_map``: yolo inference
       (``conf`` keeps nearly everything: the filter's ``tau_conf`` decides later).

@@ -65,7 +65,7 @@ def _check_weights_path(weights: str | os.PathLike) -> Path:
     if not p.is_file():
         hint = (
             " (pavemap never downloads weights: put a YOLO detection .pt file there, e.g. "
-            "models/pavemap-yolov8n-rdd2022-cn.pt from this repository, or train one with "
+            "the shipped one (pavemap.detect.backends.shipped_weights()), or train one with "
             "`pavemap train-detector`)"
         )
         if p.parent == Path(".") and p.suffix == ".pt":

@@ -74,7 +74,7 @@ def camera_ego_masks(seq: Sequence, detect: bool = True) -> dict[str, np.ndarray
 
 def espnet_semantics(seq: Sequence, arch: str = DEFAULT, weights: str | os.PathLike | None = None,
                      device: str = "auto", out_root: str | os.PathLike | None = None, batch: int = 4,
-                     width: int = 768) -> Sequence:
+                     width: int | None = None) -> Sequence:
     """Label every view of ``seq`` with the ESPNet / ESPNetv2 segmenter, the ego vehicle masked (see
     :func:`segment_sequence` for ``out_root``). Grey images or missing weights: a one-line error."""
     check_colour(seq)

@@ -67,17 +67,20 @@ ARCHS: dict[str, Arch] = {
     "espnetv2": Arch("espnetv2", "espnetv2-cityscapes", "espnetv2_s_2.0_city_1024x512.pth", _espnetv2,
                      (0.485, 0.456, 0.406), (0.229, 0.224, 0.225), False, True, 16),
 }
+#: Input width when none is given: the image's own, within these bounds (segment.json: upsampling a
+#: 400-px frame to 768 cost 0.11 road IoU; 512-640 were best on the synthetic presets, 768 on 1600-px frames
+#: keeps the cost at about 0.3 s a frame here)
+MIN_WIDTH, MAX_WIDTH = 512, 768
 #: The default network, chosen by measurement (bench/segment_bench.py, docs/segmenter.md).
 DEFAULT = "espnetv2"
 
 
 def weight_dirs() -> list[Path]:
-    """The folders searched for weight files, in order."""
-    dirs = []
-    if os.environ.get("PAVEMAP_WEIGHTS"):
-        dirs.append(Path(os.environ["PAVEMAP_WEIGHTS"]).expanduser())
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache").expanduser()
-    dirs.append(cache / "pavemap" / "weights")
+    """The folders searched for weight files, in order: the user's (:func:`pavemap.user_cache.weight_dirs`),
+    then ``shared/data/pretrained`` beside a source checkout (the project's development machines)."""
+    from pavemap.user_cache import weight_dirs as user_weight_dirs
+
+    dirs = user_weight_dirs()
     here = Path(__file__).resolve()
     if len(here.parents) > 4:  # a source checkout: <work>/<repo>/src/pavemap/segment/espnet.py
         dirs.append(here.parents[4] / "shared" / "data" / "pretrained")
@@ -163,13 +166,14 @@ def is_grey(image: np.ndarray, tol: int = 2) -> bool:
 class EspnetSegmenter:
     """Segmenter over ESPNet / ESPNetv2 Cityscapes weights. See :class:`pavemap.segment.Segmenter`.
 
-    ``width``: network input width; height = width / 2 (the 2:1 frames it was trained on; images are
-    stretched to it) or, ``keep_aspect``, the image's own aspect; labels are resized back (nearest).
+    ``width``: network input width (None: the image's width within ``MIN_WIDTH``..``MAX_WIDTH``);
+    height = width / 2 (the 2:1 frames it was trained on; images are stretched to it) or, ``keep_aspect``,
+    the image's own aspect; labels are resized back (nearest).
     ``device``: as :func:`resolve_device`.
     """
 
     def __init__(self, arch: str = DEFAULT, weights: str | os.PathLike | None = None, device: str = "auto",
-                 width: int = 768, keep_aspect: bool = True):
+                 width: int | None = None, keep_aspect: bool = True):
         import torch
 
         from pavemap.device import resolve_device
@@ -189,13 +193,15 @@ class EspnetSegmenter:
         self.classes: list[SemanticClass] = list(lm.classes)
         self.ego_id = lm.id_of("ego")
         self.dtype = torch.float32
-        log.info("segmenter %s (%s) on %s, input width %d", self.arch.name, self.path, self.device, width)
+        log.info("segmenter %s (%s) on %s, input width %s", self.arch.name, self.path, self.device,
+                 width or f"the image's, {MIN_WIDTH}-{MAX_WIDTH}")
 
     def input_size(self, height: int, width: int) -> tuple[int, int]:
         """(h, w) network input for an image of ``height`` x ``width``: multiples of the network's stride."""
         m = self.arch.multiple
-        h = self.width * height / width if self.keep_aspect else self.width / 2
-        return max(m, round(h / m) * m), max(m, round(self.width / m) * m)
+        w = self.width or min(MAX_WIDTH, max(MIN_WIDTH, width))  # never upsample past the image's own detail
+        h = w * height / width if self.keep_aspect else w / 2
+        return max(m, round(h / m) * m), max(m, round(w / m) * m)
 
     def _prepare(self, images: list[np.ndarray]) -> object:
         """RGB uint8 images → (B, 3, h, w) float network input on the device, normalised as the model was trained."""
