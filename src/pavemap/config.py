@@ -42,7 +42,7 @@ from pavemap.detect.config import DetectorConfig, FilterConfig
 from pavemap.device import CHOICES as DEVICE_CHOICES
 from pavemap.device import is_device_name
 from pavemap.errors import PavemapError
-from pavemap.maintain.policy import MaintenanceConfig
+from pavemap.maintain.config import MaintenanceConfig
 
 if TYPE_CHECKING:  # the stage configs import torch through their packages: loaded on first use
     from pavemap.fuse.config import FusionConfig

@@ -22,10 +22,10 @@ import numpy as np
 
 from pavemap.maintain.assessment import DetectorCheck, apply_detector_check, assess_coverage
 from pavemap.maintain.chainage import chainage, route_polyline
+from pavemap.maintain.config import MaintenanceConfig
 from pavemap.maintain.policy import (
     POSITIONS,
     UNASSESSED,
-    MaintenanceConfig,
     Policy,
     certainty,
     lane_positions,

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 from pavemap.errors import PavemapError
+from pavemap.maintain.policy import load_policy
 
 
 @dataclass
@@ -33,8 +34,6 @@ class MaintenanceConfig:
             raise PavemapError(f"maintenance.segment_m must be in [1, 100000] m, got {self.segment_m}")
         if self.lane_width_m is not None and not (math.isfinite(self.lane_width_m) and 1.5 <= self.lane_width_m <= 8):
             raise PavemapError(f"maintenance.lane_width_m must be in [1.5, 8] m or none, got {self.lane_width_m}")
-        from pavemap.maintain.policy import load_policy
-
         load_policy(self.policy)
 
 

@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
-from pavemap.maintain.config import MaintenanceConfig
 from pavemap.types import DEFECT_CODES
 
 LEVELS: tuple[str, ...] = ("low", "medium", "high")
@@ -436,6 +435,6 @@ def priority_ranks(priorities: list[str], scores: list[float], ids: list[int]) -
 
 
 __all__ = ["BUILTIN_POLICY", "CERTAINTIES", "LEVELS", "MEASURE_ALIASES", "POSITIONS", "PRIORITIES", "UNASSESSED",
-           "Assessment", "Bands", "MaintenanceConfig", "Policy", "certainty", "check_bands", "lane_position",
+           "Assessment", "Bands", "Policy", "certainty", "check_bands", "lane_position",
            "lane_positions", "load_policy", "measure_value", "policy_from_dict", "priority_ranks", "severity_level",
            "severity_of", "urgency"]
