@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
+from pavemap.io.atomic import atomic_write_json
 from pavemap.io.sequence import load_rgb
 from pavemap.segment import segment_sequence
 from pavemap.segment.espnet import ARCHS, DEFAULT, EspnetSegmenter, find_weights, is_grey
@@ -148,5 +149,5 @@ def semantics_for_run(seq: Sequence, spec: str, weights: str | os.PathLike | Non
         return seq, f"{arch} segmenter ({path}), reused from {out / 'semantics'}"
     log.info("no semantic maps: segmenting with %s (%s)", arch, path)
     seq = espnet_semantics(seq, arch, path, device, out_root=out)
-    (out / STAMP).write_text(json.dumps(stamp))
+    atomic_write_json(out / STAMP, stamp)  # after the labels: a stamp never vouches for half a set
     return seq, f"{arch} segmenter ({path})"
