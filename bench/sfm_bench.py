@@ -7,12 +7,12 @@
   automatically, registered frames, lateral deviation of the path from a straight line, camera height
   constancy. Targets: 21/21, ≤ 0.5 m, ± 5 cm.
 
-Both report ``road_steps``: each step's length from the road's image motion (``pavemap.io.sfm_steps``), which
+Both report ``road_steps``: each step's length from the road's image motion (``pavemap.sfm.steps``), which
 sets the path's scale, beside the SfM's own; KITTI also the camera height the road's steps imply with the true
 poses (``road_steps_on_true_poses``).
 
 The clip also reports ``road_sideways``: per step, the sideways offset of the destination camera at which the
-road matches best (``pavemap.io.sfm_steps.road_sideways``), beside the SfM path's own sideways step.
+road matches best (``pavemap.sfm.steps.road_sideways``), beside the SfM path's own sideways step.
 
 Both also report ``speed_check``: what the importers' speed check (``--fps``; KITTI 10 Hz, the clip's
 keyframes 2 Hz) says of the trajectory found: the largest change of speed per second, against its limit.
@@ -32,8 +32,8 @@ import numpy as np
 from PIL import Image
 
 from pavemap.io.egomask import detect_ego_mask, mask_report
-from pavemap.io.sfm import sfm_poses
-from pavemap.io.sfm_checks import SfmChecks, path_acceleration
+from pavemap.sfm.checks import SfmChecks, path_acceleration
+from pavemap.sfm.pipeline import sfm_poses
 from pavemap.types import Camera
 
 DATA = Path(os.environ.get("PAVEMAP_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -96,7 +96,7 @@ def kitti_true_pose_steps(ims: list[Path], cam: Camera, gt: np.ndarray) -> dict:
     """The road's step lengths with the *true* poses at the nominal 1.65 m: the camera height they imply
     (true step / road step × 1.65), an estimate independent of the triangulated ground points."""
     from pavemap.io.kitti import kitti_to_world
-    from pavemap.io.sfm_steps import road_steps
+    from pavemap.sfm.steps import road_steps
 
     T_kitti = np.tile(np.eye(4), (len(gt), 1, 1))
     T_kitti[:, :3, :] = gt
@@ -142,10 +142,10 @@ def nuscenes() -> dict:
 
 
 def sideways(ims: list[Path], res, cam: Camera, h: float, mask, lateral: np.ndarray) -> dict:  # noqa: ANN001
-    """The road's check of the path's sideways motion (:func:`pavemap.io.sfm_steps.road_sideways`): per
+    """The road's check of the path's sideways motion (:func:`pavemap.sfm.steps.road_sideways`): per
     moving step the sideways offset (m) at which the road matches best, and the SfM's own sideways step
     (``lateral`` (R,) the registered path's offsets from its chord, m)."""
-    from pavemap.io.sfm_steps import road_sideways
+    from pavemap.sfm.steps import road_sideways
 
     reg = np.flatnonzero(res.registered)
     k = res.info.get("K_refined") or {}
@@ -168,7 +168,7 @@ def synthetic_steps() -> dict:
     camera height over the road): relative error per step. Drives from ``mesh_bench`` (PAVEMAP_BENCH_DATA)."""
     from mesh_bench import bench_drive, truth_camera_height
     from pavemap.io.sequence import read_sequence
-    from pavemap.io.sfm_steps import road_steps
+    from pavemap.sfm.steps import road_steps
 
     out = {}
     for preset in ("kitti-like", "nuscenes-like"):

@@ -54,7 +54,7 @@ def test_ego_mask_found_on_bonnet_and_not_on_a_clean_drive(bonnet_drive):
 
 def test_sfm_with_mask_recovers_trajectory_and_without_fails_clearly(bonnet_drive):
     pytest.importorskip("pycolmap")
-    from pavemap.io.sfm import sfm_poses
+    from pavemap.sfm.pipeline import sfm_poses
 
     truth, images, _, _ = bonnet_drive
     cam = truth.cameras["CAM_FRONT"]

@@ -12,7 +12,7 @@ pytest.importorskip("pycolmap")
 from pavemap.errors import PavemapError  # noqa: E402
 from pavemap.io.folder import import_folder  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
-from pavemap.io.sfm import sfm_poses  # noqa: E402
+from pavemap.sfm.pipeline import sfm_poses  # noqa: E402
 
 MOUNT_HEIGHT = 1.65  # the kitti-like rig's camera height above the road (synth/rig.py)
 
@@ -80,7 +80,7 @@ def test_sfm_rejects_too_few_images(tmp_path):
 
 
 def _checked(C: np.ndarray, times: np.ndarray | None) -> dict:
-    from pavemap.io.sfm_checks import SfmChecks, check_sfm
+    from pavemap.sfm.checks import SfmChecks, check_sfm
 
     info = {"registered": len(C), "keyframes": len(C), "reproj_px": 0.5}
     return check_sfm(info, C, np.full(len(C), 1.5), SfmChecks(), times=times)

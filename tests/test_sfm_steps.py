@@ -1,4 +1,4 @@
-"""Issue 13: each step of an SfM path re-measured on the road's image motion (pavemap.io.sfm_steps)."""
+"""Issue 13: each step of an SfM path re-measured on the road's image motion (pavemap.sfm.steps)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from pavemap.errors import PavemapError
 from pavemap.geometry.triangulate import plane_homography
-from pavemap.io.sfm_steps import StepConfig, StepEstimate, relength_path, road_steps, sweep_step
+from pavemap.sfm.steps import StepConfig, StepEstimate, relength_path, road_steps, sweep_step
 
 
 def test_sweep_finds_the_step_of_a_warped_road_texture():
@@ -91,7 +91,8 @@ def test_a_road_without_texture_measures_no_step(tmp_path):
 
 
 def test_sfm_warns_when_the_road_steps_and_the_ground_points_disagree(monkeypatch, caplog):
-    from pavemap.io import sfm, sfm_scale
+    from pavemap.sfm import pipeline as sfm
+    from pavemap.sfm import scale as sfm_scale
     from pavemap.types import Camera
 
     cam = Camera("front", 320, 120, np.array([[200.0, 0, 160], [0, 200, 50], [0, 0, 1]]))
@@ -101,7 +102,7 @@ def test_sfm_warns_when_the_road_steps_and_the_ground_points_disagree(monkeypatc
         monkeypatch.setattr(sfm_scale, "refine_scale",
                             lambda *a, f=factor, **k: (f, np.full(3, 1.5 * f), {"ground_points": 100}))
         caplog.clear()
-        with caplog.at_level("WARNING", logger="pavemap.io.sfm_scale"):
+        with caplog.at_level("WARNING", logger="pavemap.sfm.scale"):
             sfm_scale.dense_rescale(res, ["a.png"] * 3, cam, 1.5, None, apply=False)
         assert ("disagree on the scale by +10 %" in caplog.text) is warned
         assert res.info["dense_scale"].get("disagrees", False) is warned
@@ -112,7 +113,7 @@ def test_sfm_warns_when_the_road_steps_and_the_ground_points_disagree(monkeypatc
 def test_road_sideways_sees_a_path_that_drifts_sideways(tiny_seq):
     """The road's check of a path's shape: on the true path every step's sideways offset is 0; a path whose
     steps were swung 0.2 m to one side (an SfM drift the lengths do not show) gets -0.2 m from the road."""
-    from pavemap.io.sfm_steps import road_sideways
+    from pavemap.sfm.steps import road_sideways
 
     cam = next(iter(tiny_seq.cameras.values()))
     views = [f.views[cam.name] for f in tiny_seq.frames]

@@ -2,7 +2,7 @@
 
 The one estimate of it, used by stage 1 (the mount height that places the surface,
 :mod:`pavemap.mesh.geometry`), by the ground points' per-camera report and by the import's SfM scale and checks
-(the height along the path, :mod:`pavemap.io.sfm_scale`, :mod:`pavemap.io.sfm`). World metric, ``up`` the
+(the height along the path, :mod:`pavemap.sfm.scale`, :mod:`pavemap.sfm.pipeline`). World metric, ``up`` the
 world's vertical.
 """
 

@@ -14,7 +14,7 @@
   three rows of the 4×4, row-major) or ``m00 … m33``.
 
 Images: ``IMAGES_DIR/*.png|jpg`` for one camera, or ``IMAGES_DIR/<camera>/*`` per camera. ``poses sfm`` instead
-of a CSV estimates poses from the images with pycolmap (:mod:`pavemap.io.sfm`), metric by the known camera
+of a CSV estimates poses from the images with pycolmap (:mod:`pavemap.sfm.pipeline`), metric by the known camera
 height above the road, and leaves what it measured in ``sfm.json``.
 """
 
@@ -35,8 +35,8 @@ from pavemap.geo.attach import GeoInput, attach_geo
 from pavemap.io.atomic import atomic_path
 from pavemap.io.egomask import resolve_ego_mask, store_ego_masks
 from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, write_sequence
-from pavemap.io.sfm import sfm_poses, write_sfm_report  # pycolmap is imported by sfm_poses, when it runs
 from pavemap.palette import PAVEMAP_CLASSES
+from pavemap.sfm.pipeline import sfm_poses, write_sfm_report  # pycolmap is imported by sfm_poses, when it runs
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")

@@ -2,7 +2,7 @@
 
 Steps (:func:`sfm_poses`):
 
-0. Keyframes by parallax (:func:`pavemap.io.sfm_checks.select_keyframes`): frames of a stopped
+0. Keyframes by parallax (:func:`pavemap.sfm.checks.select_keyframes`): frames of a stopped
    car are left out. The ego vehicle (``ego_mask``, :mod:`pavemap.io.egomask`) is masked out of
    feature extraction: features on a bonnet move with the camera and pull SfM to zero motion.
 1. SIFT features, sequential matching (video order, with loop-free overlap), incremental
@@ -21,7 +21,7 @@ Steps (:func:`sfm_poses`):
    was tried first: on a gently rolling road it biased the scale by up to 20 %.)
 4. Axes: world z = up, x = the driving direction, origin = the first camera's foot
    point on the road (road at z ≈ 0).
-5. Sanity checks (:func:`pavemap.io.sfm_checks.check_sfm`): registered share, reprojection error,
+5. Sanity checks (:func:`pavemap.sfm.checks.check_sfm`): registered share, reprojection error,
    smoothness of the path (turns, step ratios and, with frame times, speed changes within a car's ~1 g)
    and a constant camera height along it, else a clear error.
 """
@@ -32,29 +32,18 @@ import logging
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from pavemap.errors import PavemapError
 from pavemap.geometry.road_height import camera_heights
-from pavemap.io.sfm_checks import SfmChecks, check_sfm, select_keyframes
-from pavemap.io.sfm_scale import dense_rescale, road_relength
+from pavemap.sfm.checks import SfmChecks, check_sfm, select_keyframes
+from pavemap.sfm.result import SfmResult
+from pavemap.sfm.scale import dense_rescale, road_relength
 from pavemap.types import Camera
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class SfmResult:
-    T_world_cam: np.ndarray  # (N, 4, 4) float64, metric z-up; rows of unregistered images are NaN
-    registered: np.ndarray  # (N,) bool
-    scale: float  # metres per SfM unit
-    plane_inliers: int
-    points: np.ndarray  # (P, 3) float64 SfM points in the metric world
-    info: dict = field(default_factory=dict)
-    K: np.ndarray | None = None  # (3, 3) intrinsics used (refined when asked), pixel-centre convention
 
 
 def _heights_below_path(X: np.ndarray, C: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -209,9 +198,9 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     camera's K is nominal; refine focal length and principal point (``info["K_refined"]``).
     ``min_parallax``: keyframe threshold (share of the width, 0 = every frame). ``checks``: limits of
     the sanity checks (``min_registered`` overrides its share). ``road_steps``: each step's length,
-    and so the metric scale, from the road's image motion (:mod:`pavemap.io.sfm_steps`; forward-motion
+    and so the metric scale, from the road's image motion (:mod:`pavemap.sfm.steps`; forward-motion
     SfM drifts in scale along a clip). ``dense_scale``: the cameras' heights over densely matched road
-    points (:mod:`pavemap.io.sfm_scale`; sparse SIFT rarely lands on asphalt) for the checks, and the
+    points (:mod:`pavemap.sfm.scale`; sparse SIFT rarely lands on asphalt) for the checks, and the
     scale from them where the road's steps could not set it. ``times`` (N,) s of the images, when known
     (a video's frame rate): the path's speed changes are checked too (``SfmChecks.max_accel_mps2``).
     Raises PavemapError with a clear line when SfM fails or its result fails a check.

@@ -1,4 +1,4 @@
-"""Keyframes by parallax and sanity checks of an SfM result (:mod:`pavemap.io.sfm`).
+"""Keyframes by parallax and sanity checks of an SfM result (:mod:`pavemap.sfm.pipeline`).
 
 A broken reconstruction (a static bonnet read as scene, a bus taken for the street, too little
 motion) must stop the import with one clear line rather than write a sequence whose poses jump.

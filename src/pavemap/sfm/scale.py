@@ -1,6 +1,6 @@
 """Metric scale of an SfM trajectory from the road the camera looks at.
 
-:func:`road_relength` sets each step's length from the road's image motion (:mod:`pavemap.io.sfm_steps`).
+:func:`road_relength` sets each step's length from the road's image motion (:mod:`pavemap.sfm.steps`).
 :func:`dense_rescale` measures the cameras' heights over densely matched road points, which check that
 scale, or set it where the road's steps could not. SIFT finds few points on smooth asphalt (the nuScenes
 clip: a dozen under the driven path), too few to fix the scale from sparse SfM points, so the road is matched
@@ -16,14 +16,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pavemap.sfm.result import SfmResult
 from pavemap.types import Camera, Frame, Sequence, View
-
-if TYPE_CHECKING:
-    from pavemap.io.sfm import SfmResult
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +104,7 @@ def road_relength(res: SfmResult, images: list[Path], camera: Camera, camera_hei
 
     True when the road measured at least ``min_share`` of the steps: the path's scale is then the road's.
     """
-    from pavemap.io.sfm_steps import relength_path, road_steps
+    from pavemap.sfm.steps import relength_path, road_steps
 
     reg = np.flatnonzero(res.registered)
     T = res.T_world_cam[reg]
