@@ -103,7 +103,24 @@ def _done(seq: Sequence, out: Path, sem: str) -> None:
 
     views = sum(len(f.views) for f in seq.frames)
     typer.echo(f"{seq.name}: {len(seq.frames)} frames, {views} views, semantics: {sem} -> {out}")
+    _say_sfm(out)
     typer.echo(describe(seq))
+
+
+def _say_sfm(out: Path) -> None:
+    """One line on what SfM kept and where its diagnosis is, when the poses came from SfM."""
+    import json
+
+    from pavemap.sfm.report import SFM_FIGURE, SFM_REPORT
+
+    rep = Path(out) / SFM_REPORT
+    if not rep.is_file():
+        return
+    r = json.loads(rep.read_text())
+    dropped = r.get("dropped") or {}
+    typer.echo(f"poses: {r.get('method', 'SfM')}, {r.get('registered')} of {r.get('images')} frames kept"
+               + (f", {len(dropped)} dropped (why: {SFM_REPORT})" if dropped else "")
+               + f", scale from {r.get('scale_source')}; diagnosis: {rep}, {Path(out) / SFM_FIGURE}")
 
 
 def _geo(gps: str | None, offset: float | None, origin: str | None, oxts_first: int | None = None,  # noqa: ANN202

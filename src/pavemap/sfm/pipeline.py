@@ -39,7 +39,9 @@ import numpy as np
 from pavemap.errors import PavemapError
 from pavemap.geometry.road_height import camera_heights
 from pavemap.sfm.checks import SfmChecks, check_sfm, select_keyframes
-from pavemap.sfm.result import SfmResult
+from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_flags
+from pavemap.sfm.planar import planar_result
+from pavemap.sfm.result import SfmRefusedError, SfmResult
 from pavemap.sfm.scale import dense_rescale, road_relength
 from pavemap.types import Camera
 
@@ -187,11 +189,12 @@ def _prepare_images(images: list[Path], work: Path) -> tuple[Path, list[str]]:
 
 
 def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, workdir: str | os.PathLike | None = None,
-              overlap: int = 10, num_threads: int = 1, max_features: int = 8192, min_registered: float = 0.6,
+              overlap: int = 10, num_threads: int = 1, max_features: int = 8192, min_registered: float = 0.0,
               seed: int = 0, peak_threshold: float = 0.003, verbose: bool = False, ego_mask: np.ndarray | None = None,
               refine_intrinsics: bool = False, min_parallax: float = 0.002, init_min_tri_angle: float = 2.0,
               checks: SfmChecks | None = None, dense_scale: bool = True, road_steps: bool = True,
-              times: np.ndarray | None = None) -> SfmResult:
+              times: np.ndarray | None = None, limits: PartLimits | None = None,
+              planar_fallback: bool = True) -> SfmResult:
     """Metric z-up camera-to-world poses (N, 4, 4) for ``images`` (video order) of one ``camera``.
 
     ``ego_mask`` (H, W) bool, True on the ego vehicle: no features there. ``refine_intrinsics``: the
@@ -203,7 +206,12 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     points (:mod:`pavemap.sfm.scale`; sparse SIFT rarely lands on asphalt) for the checks, and the
     scale from them where the road's steps could not set it. ``times`` (N,) s of the images, when known
     (a video's frame rate): the path's speed changes are checked too (``SfmChecks.max_accel_mps2``).
-    Raises PavemapError with a clear line when SfM fails or its result fails a check.
+    ``limits``: when a step breaks the path (:mod:`pavemap.sfm.parts`): the longest consistent part is kept and
+    the frames left out are named in ``info["dropped"]``. ``planar_fallback``: where COLMAP gives no usable model
+    (none, too small, or steps that do not follow the car's heading), the path comes from the car's planar
+    motion between consecutive frames instead (:mod:`pavemap.sfm.planar`).
+    Raises :class:`~pavemap.sfm.result.SfmRefusedError` (a PavemapError holding what was measured) with a clear line
+    when nothing usable is left or the kept part fails a check.
     """
     try:
         import pycolmap
@@ -219,8 +227,11 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     if times is not None and len(times) != len(images):
         raise PavemapError(f"SfM: {len(times)} frame times for {len(images)} images")
     checks = checks or SfmChecks(min_registered=min_registered)
+    limits = limits or PartLimits()
     images = [Path(p) for p in images]
     keyframes = select_keyframes(images, min_parallax, ego_mask) if min_parallax > 0 else np.ones(len(images), bool)
+    info: dict = {"images": len(images), "keyframes": int(keyframes.sum()), "camera_height_m": camera_height,
+                  "keyframe_index": np.flatnonzero(keyframes).tolist()}
     # COLMAP logs every step at INFO to stderr; keep warnings, report progress ourselves
     old_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING) if verbose is False else 0
@@ -237,116 +248,203 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
              "refine_intrinsics": refine_intrinsics, "min_share": max(checks.min_registered, 0.9),
              "max_focal_change": 0.05}
         rec = _colmap_model(pycolmap, work, image_dir, names, camera, ego_mask, o)
-        if rec is None:
-            raise PavemapError(f"SfM failed: no reconstruction from {len(names)} keyframes ({hint})")
-        res = _metric_result(rec, all_names, keyframes, camera, camera_height, checks, hint)
+        res = None
+        try:
+            if rec is None:
+                raise PavemapError(f"SfM failed: no reconstruction from {len(names)} keyframes ({hint})")
+            res = _metric_result(rec, all_names, keyframes, camera, camera_height, limits, hint, info)
+            info["method"] = "pycolmap SfM"
+            if info.get("translations_rejected"):
+                raise PavemapError("SfM's steps point off the car's heading in most places (its translations "
+                                   "are wrong)")
+        except PavemapError as e:
+            if not planar_fallback:
+                raise
+            log.warning("SfM: %s; following the car's planar motion instead", e)
+            info["sfm_failure"] = str(e)
+            res = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info)
         if "intrinsics" in o:
             res.info["intrinsics_refinement"] = o["intrinsics"]
-        # the road's step lengths set the scale where they measured most of the path; the dense ground
-        # points then only measure the heights for the checks (on the KITTI sample, with the road's scale
-        # already set, they moved it 4 % away from what they read with the true poses)
-        scaled = road_steps and road_relength(res, images, camera, camera_height, ego_mask)
-        if dense_scale:
-            dense_rescale(res, images, camera, camera_height, ego_mask, apply=not scaled)
+        _set_scale(res, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
                                        checks, hint, None if times is None else np.asarray(times)[res.registered])
         _fill_between_keyframes(res, keyframes)
-        log.info("SfM: %s", res.info)
+        res.info["status"] = "ok"
+        log.info("SfM: %s", {k: v for k, v in res.info.items() if not k.startswith("_")})
         return res
+    except PavemapError as e:
+        info.update(status="refused", reason=str(e))
+        raise SfmRefusedError(str(e), info) from None
     finally:
         pycolmap.logging.minloglevel = old_level
         if own_tmp:
             shutil.rmtree(work, ignore_errors=True)
 
 
-def _metric_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera, camera_height: float,
-                   checks: SfmChecks, hint: str) -> SfmResult:
-    """Scale the model by the camera height, turn it z-up, check it, and pack the result."""
+def _set_scale(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
+               ego_mask: np.ndarray | None, road_steps: bool, dense_scale: bool, hint: str) -> None:
+    """The metric scale of ``res`` (in place): the road's step lengths where they measured most of the path,
+    else the dense road points, else the sparse road points; stop when none of them could set it.
+
+    With the road's scale set, the dense ground points only measure the heights for the checks (on the KITTI
+    sample they moved the road's scale 4 % away from what they read with the true poses)."""
+    provisional = res.info["scale_source"].startswith("provisional")
+    # a path without any scale of its own takes the road's wherever a quarter of its steps were measured
+    scaled = road_steps and road_relength(res, images, camera, camera_height, ego_mask,
+                                          min_share=0.25 if provisional else 0.5)
+    if scaled:
+        res.info["scale_source"] = "the road's step lengths"
+    if dense_scale:
+        dense_rescale(res, images, camera, camera_height, ego_mask, apply=not scaled)
+        if not scaled and res.info.get("dense_scale", {}).get("applied"):
+            res.info["scale_source"] = "dense road points under the path"
+    if res.info["scale_source"].startswith("provisional"):
+        steps = res.info.get("road_steps", {})
+        dense = res.info.get("dense_scale", {})
+        raise PavemapError(
+            f"SfM: cannot fix the metric scale: {res.info['road_points_under_path']} sparse 3D points on the road "
+            f"under the path, {steps.get('measured', 0)} of {steps.get('steps', 0)} steps measured on the road, "
+            f"dense road matching: {dense.get('reason') or 'not run'} ({hint})")
+
+
+def _model_poses(rec, names: list[str], keyframes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                          np.ndarray]:
+    """SfM-frame camera-to-world poses (N, 4, 4) (NaN where not registered), ``registered`` (N,) bool (keyframes
+    only), K (3, 3) (pixel-centre convention) and the model's points (P, 3)."""
     by_name = {img.name: img for img in rec.images.values()}
-    N = len(names)
     registered = np.array([n in by_name for n in names]) & keyframes
-    n_key = int(keyframes.sum())
-    if registered.sum() < max(3, checks.min_registered * n_key):
-        raise PavemapError(f"SfM registered only {int(registered.sum())} of {n_key} keyframes; need "
-                           f"{checks.min_registered:.0%} ({hint})")
-    cam = rec.cameras[next(iter(by_name.values())).camera_id]
-    fx, fy, cx, cy = (float(v) for v in cam.params[:4])
+    T_wc = np.full((len(names), 4, 4), np.nan)
+    for i in np.flatnonzero(registered):
+        T = np.eye(4)
+        T[:3, :4] = by_name[names[i]].cam_from_world().matrix()
+        T_wc[i] = np.linalg.inv(T)
+    cam = rec.cameras[next(iter(by_name.values())).camera_id] if by_name else None
+    fx, fy, cx, cy = (float(v) for v in cam.params[:4]) if cam is not None else (np.nan,) * 4
     K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-    T_cw = np.full((N, 4, 4), np.nan)
-    for i, n in enumerate(names):
-        if registered[i]:
-            T = np.eye(4)
-            T[:3, :4] = by_name[n].cam_from_world().matrix()
-            T_cw[i] = T
-    reg = np.nonzero(registered)[0]
-    T_wc = np.linalg.inv(T_cw[reg])  # (R, 4, 4) SfM world <- camera
-    C = T_wc[:, :3, 3]
-    R_wc = T_wc[:, :3, :3]
     P = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
-    # "up": the cameras' mean -y axis with the component along the drive removed (the
-    # mount's pitch tilts -y forward or back; the drive itself is near-level on average)
+    return T_wc, registered, K, P
+
+
+def _up(T_wc: np.ndarray, min_turn_deg: float = 30.0) -> np.ndarray:
+    """The road's "up" (3,) in the SfM frame from registered poses (R, 4, 4).
+
+    A car turns about the road's normal, which is fixed in the camera (the mount does not move): where the
+    path turns by ``min_turn_deg`` or more, up is the camera-frame axis that all the rotations map to one world
+    direction (the least-squares common axis; it does not need the translations, which forward-motion SfM gets
+    wrong first). On a straighter drive: the cameras' mean -y axis with the component along the drive removed
+    (the mount's pitch tilts -y forward or back; the drive is near-level on average)."""
+    C, R_wc = T_wc[:, :3, 3], T_wc[:, :3, :3]
+    f = R_wc[:, :, 2]
+    turned = np.degrees(np.arccos(np.clip(f @ f.T, -1.0, 1.0))).max() if len(f) > 1 else 0.0
+    if turned >= min_turn_deg:
+        dev = R_wc - R_wc.mean(0)
+        w, V = np.linalg.eigh(np.einsum("kji,kjl->il", dev, dev))  # sum_k dev_kᵀ dev_k
+        n_cam = V[:, 0] if V[1, 0] < 0 else -V[:, 0]  # up is the camera's -y side
+        up = (R_wc @ n_cam).mean(0)
+        return up / np.linalg.norm(up)
     up = -R_wc[:, :, 1].mean(0)
     _, _, Vt = np.linalg.svd(C - C.mean(0), full_matrices=False)
     along = Vt[0]
     up = up - (up @ along) * along if len(C) > 2 and np.ptp(C @ along) > 0 else up
-    up /= np.linalg.norm(up)
+    return up / np.linalg.norm(up)
+
+
+def _keep_consistent(T_wc: np.ndarray, registered: np.ndarray, keyframes: np.ndarray, limits: PartLimits,
+                     info: dict) -> np.ndarray:
+    """``registered`` narrowed to the longest consistent part of the keyframes' path and the steps that skid
+    repaired onto the car's heading (in place in ``T_wc``) (:mod:`pavemap.sfm.parts`). ``info["dropped"]``
+    {frame: reason}, ``info["parts"]`` and ``info["steps"]`` say what was left out, repaired and why."""
+    kf = np.flatnonzero(keyframes)
+    reg_kf = registered[kf]
+    up = _up(T_wc[registered])
+    keep_kf, dropped, figures = consistent_parts(reg_kf, np.nan_to_num(T_wc[kf, :3, 3]),
+                                                 np.nan_to_num(T_wc[kf, :3, 2]), up, limits)
+    info["dropped"] = {int(kf[i]): why for i, why in sorted(dropped.items())}
+    info["parts"] = [[int(kf[a]), int(kf[b]), bool(k)] for a, b, k in figures["parts"]]
+    out = np.zeros_like(registered)
+    out[kf[keep_kf]] = True
+    if out.sum() < limits.min_frames:
+        longest = "none" if not out.any() else f"frames {kf[keep_kf][0]}-{kf[keep_kf][-1]}"
+        raise PavemapError(f"SfM: no consistent part of at least {limits.min_frames} keyframes to keep (longest: "
+                           f"{longest}, {int(out.sum())} keyframes; {int(reg_kf.sum())} of {len(kf)} registered)")
+    kept = np.flatnonzero(out)
+    flags = step_flags(T_wc[kept, :3, 3], T_wc[kept, :3, 2], up, limits)
+    moving = np.array([x is not None for x in flags["skid_deg"]], dtype=bool)
+    if flags["skids"].sum() > 0.5 * max(1, moving.sum()):
+        # most steps off the heading: SfM's translations are wrong as a whole, not here and there
+        flags["skids"] = np.ones_like(flags["skids"])
+        info["translations_rejected"] = True
+    T_wc[kept, :3, 3] = repair_skids(T_wc[kept, :3, 3], T_wc[kept, :3, 2], up, flags["skids"],
+                                     flags["mount_yaw_deg"], flags["reverse"])
+    if flags["reverse"]:
+        log.warning("SfM: the camera moves backwards along its view in most steps: are the frames numbered in "
+                    "reverse? (mapped as given: a reversing car)")
+    info["steps"] = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in flags.items() if k != "why"}
+    info["steps"]["repaired"] = np.flatnonzero(flags["skids"]).tolist()  # step k: kept frame k -> k+1
+    return out
+
+
+def _metric_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera, camera_height: float,
+                   limits: PartLimits, hint: str, info: dict) -> SfmResult:
+    """Keep the longest consistent part, scale it by the camera height, turn it z-up, and pack the result.
+
+    The scale here comes from the sparse road points under the path; where there are too few of them (SIFT
+    rarely lands on smooth asphalt) it is provisional and the road's step lengths or the dense road points
+    set it afterwards (:func:`sfm_poses`); ``info["scale_source"]`` says which."""
+    T_all, registered, K, P = _model_poses(rec, names, keyframes)
+    info.update(registered_by_sfm=int(registered.sum()), points=len(P),
+                reproj_px=float(rec.compute_mean_reprojection_error()))
+    info["_poses_sfm"] = T_all
+    if registered.sum() < 3:
+        raise PavemapError(f"SfM registered only {int(registered.sum())} of {int(keyframes.sum())} keyframes "
+                           f"({hint})")
+    registered = _keep_consistent(T_all, registered, keyframes, limits, info)
+    reg = np.flatnonzero(registered)
+    T_wc = T_all[reg]
+    C, R_wc = T_wc[:, :3, 3], T_wc[:, :3, :3]
+    up = _up(T_wc)
     cand = _road_candidates(P, C, R_wc, K, camera.width, camera.height, up)
     heights, drive_over = _heights_below_path(P[cand], C, up)
-    if drive_over.sum() < 3:
-        raise PavemapError(f"SfM: only {int(drive_over.sum())} 3D points on the road under the driven path; "
-                           f"cannot fix the scale ({hint})")
-    h_sfm = float(np.median(heights[drive_over]))
-    if not h_sfm > 0:
-        raise PavemapError(f"SfM: the road points are not below the cameras ({hint})")
+    info.update(road_candidates=int(cand.sum()), road_points_under_path=int(drive_over.sum()))
+    if drive_over.sum() >= 3 and np.median(heights[drive_over]) > 0 and not info.get("translations_rejected"):
+        h_sfm = float(np.median(heights[drive_over]))
+        info["scale_source"] = "sparse road points under the path"
+        info["height_spread"] = float(np.median(np.abs(heights[drive_over] - h_sfm)) / h_sfm)
+    else:
+        # a provisional scale: a step of the median length taken as 5 m (a car at 36 km/h, 2 Hz); the road's
+        # step lengths replace it, and without them the import stops (sfm_poses)
+        steps = np.linalg.norm(np.diff(C, axis=0), axis=1)
+        h_sfm = camera_height * float(np.median(steps[steps > 0])) / 5.0 if (steps > 0).any() else 1.0
+        info["scale_source"] = ("provisional (SfM's translations rejected)" if info.get("translations_rejected")
+                                else "provisional (too few sparse road points)")
     s = camera_height / h_sfm
     n = up
-    spread = float(np.median(np.abs(heights[drive_over] - h_sfm)) / h_sfm)
     # metric z-up world: z = n, x = driving direction in the plane, origin under camera 0
     travel = C[-1] - C[0]
     x = travel - (travel @ n) * n
     if np.linalg.norm(x) < 1e-9:
         x = R_wc[0][:, 2] - (R_wc[0][:, 2] @ n) * n
     x /= np.linalg.norm(x)
-    y = np.cross(n, x)
-    A = np.stack([x, y, n])  # rows: new axes in SfM coordinates
+    A = np.stack([x, np.cross(n, x), n])  # rows: new axes in SfM coordinates
     origin = C[0] - h_sfm * n
-    out = np.full((N, 4, 4), np.nan)
+    out = np.full((len(names), 4, 4), np.nan)
     M = np.tile(np.eye(4), (len(reg), 1, 1))
     M[:, :3, :3] = A @ R_wc
     M[:, :3, 3] = s * (C - origin) @ A.T
     U, _, Vt = np.linalg.svd(M[:, :3, :3])
     M[:, :3, :3] = U @ Vt
     out[reg] = M
+    # the dropped parts in the same frame, for the diagnosis figure only
+    moved = np.isfinite(T_all[:, 0, 0])
+    info["_poses_sfm"] = np.full_like(T_all, np.nan)
+    info["_poses_sfm"][moved, :3, 3] = s * (T_all[moved, :3, 3] - origin) @ A.T
     pts = s * (P - origin) @ A.T
-    info = {
-        "registered": int(registered.sum()),
-        "images": N,
-        "keyframes": n_key,
-        "points": len(P),
-        "reproj_px": float(rec.compute_mean_reprojection_error()),
-        "road_candidates": int(cand.sum()),
-        "road_points_under_path": int(drive_over.sum()),
-        "height_spread": spread,  # median |h - median h| / median h of those points
-        "K_refined": {"fx": round(fx, 2), "fy": round(fy, 2), "cx": round(cx - 0.5, 2), "cy": round(cy - 0.5, 2)},
-    }
+    info.update(registered=int(registered.sum()), images=len(names), keyframes=int(keyframes.sum()))
+    info["K_refined"] = {k: round(float(v), 2) for k, v in zip(("fx", "fy", "cx", "cy"),
+                                                               (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), strict=True)}
     road = pts[cand][drive_over]
     info["_heights"] = camera_heights(road, M[:, :3, 3], np.array([0.0, 0.0, 1.0]), lateral=1.5 * camera_height)
     return SfmResult(out, registered, float(s), int(drive_over.sum()), pts, info, K)
-
-
-SFM_REPORT = "sfm.json"
-
-
-def write_sfm_report(res: SfmResult | None, out: Path) -> Path | None:
-    """``out/sfm.json``: what SfM measured and checked (registered frames, intrinsics, the sanity checks'
-    figures, each step's length by SfM and by the road, the dense points' heights) beside the sequence it made.
-    Nothing without an SfM result (poses given)."""
-    from pavemap.io.atomic import atomic_write_json
-
-    if res is None:
-        return None
-    info = {k: v for k, v in res.info.items() if not k.startswith("_")}
-    return atomic_write_json(Path(out) / SFM_REPORT, {"scale_m_per_unit": res.scale, **info})
 
 
 def _fill_between_keyframes(res: SfmResult, keyframes: np.ndarray) -> None:

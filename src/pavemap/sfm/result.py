@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pavemap.errors import PavemapError
+
 
 @dataclass
 class SfmResult:
@@ -16,3 +18,11 @@ class SfmResult:
     points: np.ndarray  # (P, 3) float64 SfM points in the metric world
     info: dict = field(default_factory=dict)
     K: np.ndarray | None = None  # (3, 3) intrinsics used (refined when asked), pixel-centre convention
+
+
+class SfmRefusedError(PavemapError):
+    """SfM could not give a usable path; ``info`` holds what it measured on the way (for ``sfm.json``)."""
+
+    def __init__(self, message: str, info: dict) -> None:
+        super().__init__(message)
+        self.info = info

@@ -180,7 +180,8 @@ def sweep_step(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: n
     sweep, sc = sweep[order], sc[order]
     j = int(np.nanargmax(sc))
     best = float(sweep[j])
-    if 0 < j < len(sc) - 1 and np.isfinite(sc[j - 1 : j + 2]).all():
+    # (the coarse and fine candidates can coincide: the parabola needs three distinct abscissae)
+    if 0 < j < len(sc) - 1 and np.isfinite(sc[j - 1 : j + 2]).all() and np.unique(sweep[j - 1 : j + 2]).size == 3:
         # parabola through the peak and its neighbours (unequal spacing)
         x, y = sweep[j - 1 : j + 2], sc[j - 1 : j + 2]
         A = np.stack([x**2, x, np.ones(3)], 1)
