@@ -71,7 +71,7 @@ def write_fusion_files(out_dir: str | os.PathLike, result: FusionResult,
     (``GridSpec.to_dict``, plus the vertex grid of ``vertex_prob.npy`` under ``surface``).
     """
     from pavemap.export.gis import write_gis
-    from pavemap.maintain.segments import write_segments_csv, write_segments_geojson
+    from pavemap.export.segments import write_segments_csv, write_segments_geojson
 
     out = Path(out_dir)
     paths: dict[str, Path] = {}

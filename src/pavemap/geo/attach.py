@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import check_origin
 from pavemap.geo.georef import Georef, georeference, scale_poses
+from pavemap.geo.tangent import check_origin
 from pavemap.io.gps import GpsTrack, csv_has_gps, read_exif_gps, read_gps, read_gps_csv, read_oxts
 from pavemap.types import GeoOrigin, Sequence
 

@@ -83,7 +83,7 @@ def run_drive(task: dict) -> dict:
     task gives the same run folder."""
     import socket
 
-    import pavemap
+    from pavemap import pipeline as pavemap  # pavemap.run is the pipeline's run (the package face sits above)
     from pavemap.mesh.tiles import tiles_run_by
 
     t = time.perf_counter()
@@ -146,7 +146,7 @@ def drive_config(manifest: Manifest, drive: Drive, seq: object):  # noqa: ANN201
 
 
 def config_hash(cfg: object) -> str:
-    from pavemap.run_folder import hash_parts
+    from pavemap.io.hashes import hash_parts
 
     return hash_parts(cfg.to_dict())  # type: ignore[attr-defined]
 
@@ -163,7 +163,8 @@ def is_current(seq: object, cfg: object, run: Path) -> bool:
     detect and fuse stamps holding the keys :func:`pavemap.run` would compute now."""
     from pavemap.detect.backends import resolve_backend
     from pavemap.device import resolve_device
-    from pavemap.run_folder import COMPLETE, detect_parts, hash_parts, hash_sequence, mesh_parts
+    from pavemap.io.hashes import hash_parts, hash_sequence
+    from pavemap.run_folder import COMPLETE, detect_parts, mesh_parts
 
     if not (run / COMPLETE).is_file():
         return False

@@ -110,9 +110,9 @@ def _trajectory(gpkg: Path, to_reg: Transformer) -> object | None:
 def load_drive(net: Path, entry: dict, reg_crs: CRS | None) -> tuple[DriveDefects, CRS]:
     """A finished drive's defects in the register CRS (``reg_crs`` None: this drive's UTM zone)."""
     from pavemap.compare import _collect
-    from pavemap.export.geo import local_tangent
     from pavemap.export.gis import SURVEY_GPKG, read_defect_layer
     from pavemap.geo.crs import output_crs
+    from pavemap.geo.tangent import local_tangent
 
     gpkg = net / entry["run"] / SURVEY_GPKG
     layer = read_defect_layer(gpkg)
