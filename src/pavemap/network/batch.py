@@ -27,10 +27,9 @@ from pathlib import Path
 
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_write_json
+from pavemap.network.folder import FORMAT, NETWORK_FILE, read_network
 from pavemap.network.manifest import Drive, Manifest, load_manifest
 
-NETWORK_FILE = "network.json"
-FORMAT = "pavemap-network/1"
 DRIVES_DIR = "drives"
 DEFAULT_RETRIES = 2
 Echo = Callable[[str], None]
@@ -270,20 +269,6 @@ def _run_serial(tasks: list[dict], task_fn: Callable[[dict], dict],
 # ---------------------------------------------------------------------------- the driver
 
 
-def read_network(net: str | os.PathLike) -> dict:
-    """``NETWORK/network.json``; PavemapError when ``net`` is not a network folder."""
-    p = Path(net) / NETWORK_FILE
-    try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PavemapError(f"{net}: no {NETWORK_FILE} (is it a folder `pavemap batch` wrote?)") from None
-    except (OSError, ValueError) as e:
-        raise PavemapError(f"{p}: cannot read ({e})") from None
-    if not isinstance(d, dict) or d.get("format") != FORMAT or not isinstance(d.get("drives"), list):
-        raise PavemapError(f"{p}: not a pavemap network status file ({FORMAT})")
-    return d
-
-
 def _plan(manifest: Manifest, net: Path, previous: dict[str, dict], threads: int = 1
           ) -> tuple[list[dict], list[dict]]:
     """The status entry of every drive and the tasks still to run (finished, current drives are reused)."""
@@ -421,5 +406,5 @@ def register_line(summary: dict) -> str:
             f"not seen again {c.get('not seen again', 0)}) in {summary['path']}")
 
 
-__all__ = ["NETWORK_FILE", "cluster", "config_from_dict", "drive_config", "is_current", "read_network",
+__all__ = ["cluster", "config_from_dict", "drive_config", "is_current",
            "register_line", "run_batch", "run_drive"]

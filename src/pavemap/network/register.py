@@ -346,7 +346,7 @@ def build_register(net: str | os.PathLike, grow_ratio: float = GROW_RATIO, floor
     Returns the summary (also in ``register.json``).
     """
     from pavemap.geo.crs import crs_label
-    from pavemap.network.batch import read_network
+    from pavemap.network.folder import read_network
 
     if not (np.isfinite(grow_ratio) and grow_ratio >= 1.0):
         raise PavemapError(f"grow_ratio must be >= 1, got {grow_ratio}")
