@@ -123,8 +123,7 @@ def attach_geo(seq: Sequence, geo: GeoInput | None, *, poses: str | os.PathLike 
         return None
     lever = geo.lever_arm
     if lever is None and track.kind == "oxts":
-        from pavemap.io.gps import oxts_antenna_in_cam0
-        from pavemap.io.kitti import A_KITTI_TO_WORLD
+        from pavemap.io.gps import A_KITTI_TO_WORLD, oxts_antenna_in_cam0
 
         p = oxts_antenna_in_cam0(geo.gps)  # type: ignore[arg-type]
         lever = None if p is None else tuple(float(v) for v in A_KITTI_TO_WORLD @ p)
