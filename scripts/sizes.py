@@ -20,9 +20,9 @@ def oversized(root: Path) -> list[str]:
         if (n := len(text.splitlines())) > MAX_MODULE:
             out.append(f"module {p.relative_to(root)}: {n} lines")
         for node in ast.walk(ast.parse(text, str(p))):
-            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                if (n := node.end_lineno - node.lineno + 1) > MAX_FUNCTION:
-                    out.append(f"function {p.relative_to(root)}:{node.name}: {n} lines")
+            is_def = isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+            if is_def and (n := node.end_lineno - node.lineno + 1) > MAX_FUNCTION:
+                out.append(f"function {p.relative_to(root)}:{node.name}: {n} lines")
     return out
 
 
