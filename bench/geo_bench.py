@@ -78,9 +78,9 @@ def cell(seq: object, got: np.ndarray, want: np.ndarray, every: np.ndarray, sigm
          seeds: int) -> dict:
     """One noise setting over ``seeds`` GPS tracks; ``every``: all true defects (the georeferencing error
     alone, at every defect of the road, mapped or not)."""
-    from pavemap.export.geo import local_tangent
     from pavemap.geo.georef import georeference
     from pavemap.geo.simulate import simulate_track
+    from pavemap.geo.tangent import local_tangent
 
     true = seq.geo_origin  # type: ignore[attr-defined]
     lt = local_tangent(true)

@@ -298,7 +298,7 @@ def segment_row(data: Path, device: str) -> dict:
     (its defects per 100 m² of corridor, and the same index computed on the truth records); whether the mapped
     index falls as the truth's density rises (Spearman rank, pairwise order, clean segments above damaged ones)."""
     import pavemap
-    from pavemap.maintain.chainage import chainage, route_polyline
+    from pavemap.geometry.chainage import chainage, route_polyline
     from pavemap.maintain.policy import load_policy, severity_level
     from pavemap.maintain.segments import build_segments
     from pavemap.synth import load_truth_defects, synthesize

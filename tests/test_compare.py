@@ -14,8 +14,8 @@ from typer.testing import CliRunner
 from pavemap.commands.compare import register
 from pavemap.compare import compare_runs
 from pavemap.errors import PavemapError
-from pavemap.export.geo import local_tangent
 from pavemap.export.geojson import write_geojson
+from pavemap.geo.tangent import local_tangent
 from pavemap.types import DefectInstance, GeoOrigin
 
 

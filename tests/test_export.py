@@ -14,12 +14,12 @@ from shapely.geometry import Polygon, box, shape
 
 from pavemap.errors import PavemapError
 from pavemap.export import read_geojson, to_dataframe, write_outputs
-from pavemap.export.geo import local_tangent
 from pavemap.export.geojson import instances_to_geojson, write_geojson
 from pavemap.export.geotiff import BAND_DESCRIPTIONS, write_geotiff
 from pavemap.export.report import build_report_html
 from pavemap.export.sample import sample_inputs
 from pavemap.export.tables import columns, write_csv
+from pavemap.geo.tangent import local_tangent
 from pavemap.geometry.grid import GridSpec
 from pavemap.types import DefectInstance, GeoOrigin
 

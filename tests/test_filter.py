@@ -45,6 +45,18 @@ def test_box_ratio_matches_brute_force() -> None:
         assert math.isclose(g, mask[np.ix_(rows, cols)].mean(), abs_tol=1e-12)
 
 
+@pytest.mark.parametrize("shape", [(0, 4), (1, 1), (1, 9), (7, 1), (37, 53)])
+def test_integral_image_is_the_zero_padded_summed_area_table(shape) -> None:
+    """scikit-image's table, padded: each entry is the count of True pixels above and left of it."""
+    from pavemap.detect.boxes import integral_image
+
+    mask = np.random.default_rng(2).random(shape) < 0.5
+    ii = integral_image(mask)
+    assert ii.shape == (shape[0] + 1, shape[1] + 1) and ii.dtype == np.int64
+    want = np.array([[mask[:r, :c].sum() for c in range(shape[1] + 1)] for r in range(shape[0] + 1)])
+    assert np.array_equal(ii, want.reshape(ii.shape))
+
+
 def test_box_ratio_scaled_mask() -> None:
     mask = np.zeros((H // 2, W // 2), dtype=bool)
     mask[H // 4:] = True  # lower half road at half resolution

@@ -12,10 +12,10 @@ from typer.testing import CliRunner
 
 from pavemap.cli import app
 from pavemap.errors import PavemapError
-from pavemap.export.geo import local_tangent
 from pavemap.geo.fit import robust_fit
 from pavemap.geo.georef import georeference, position_error, scale_poses
 from pavemap.geo.simulate import simulate_track
+from pavemap.geo.tangent import local_tangent
 from pavemap.types import Camera, Frame, GeoOrigin, Sequence, View
 
 TRUE = GeoOrigin(lat=-37.8136, lon=144.9631, alt=31.0, heading_deg=200.0)  # Melbourne: south, east

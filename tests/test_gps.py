@@ -16,9 +16,9 @@ from typer.testing import CliRunner
 
 from pavemap.cli import app
 from pavemap.errors import PavemapError, SequenceError
-from pavemap.export.geo import local_tangent
 from pavemap.geo.attach import GeoInput, parse_geo_origin
 from pavemap.geo.georef import position_error
+from pavemap.geo.tangent import local_tangent
 from pavemap.io.folder import import_folder
 from pavemap.io.gps import exif_fix, read_gps, read_gpx, read_nmea, read_oxts
 from pavemap.io.kitti import import_kitti

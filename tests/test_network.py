@@ -26,7 +26,8 @@ from pyproj import CRS
 
 from pavemap.errors import PavemapError
 from pavemap.export.gis import read_defect_layer
-from pavemap.network.batch import read_network, run_batch, run_drive
+from pavemap.network.batch import run_batch, run_drive
+from pavemap.network.folder import read_network
 from pavemap.network.manifest import load_manifest
 from pavemap.network.register import build_register, read_register
 from pavemap.network.workers import forkserver_available

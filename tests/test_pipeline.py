@@ -149,7 +149,8 @@ def test_all_detections_filtered_gives_a_clear_report(tiny_seq, tmp_path):
 def test_stage_keys_know_the_code_not_only_the_version(tmp_path):
     """A stage done by other code is redone: the key holds a hash of the package's code, which an edit changes."""
     from pavemap import __version__
-    from pavemap.run_folder import code_version, mesh_parts
+    from pavemap.run_folder import mesh_parts
+    from pavemap.version import code_version
 
     pkg = tmp_path / "pkg"
     (pkg / "configs").mkdir(parents=True)

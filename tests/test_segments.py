@@ -8,14 +8,14 @@ import json
 import numpy as np
 import pytest
 
-from pavemap.maintain.chainage import chainage, route_polyline
+from pavemap.export.segments import write_segments_csv
+from pavemap.geometry.chainage import chainage, route_polyline
 from pavemap.maintain.policy import load_policy, severity_level
 from pavemap.maintain.segments import (
     SEGMENT_SCHEMA,
     build_segments,
     corrected_deduct,
     segment_edges,
-    write_segments_csv,
 )
 
 ROUTE = np.column_stack([np.linspace(0.0, 300.0, 61), np.zeros(61)])  # 300 m straight along x

@@ -158,7 +158,7 @@ def test_camera_heights_follow_the_path_over_a_graded_cambered_road():
 
 
 def test_chainage_of_a_long_route_equals_the_exhaustive_projection():
-    from pavemap.maintain.chainage import chainage, cumulative_length, route_polyline
+    from pavemap.geometry.chainage import chainage, cumulative_length, route_polyline
 
     rng = np.random.default_rng(2)
     th = np.cumsum(rng.normal(0.0, 0.08, 300))

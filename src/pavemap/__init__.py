@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from pavemap.version import __version__ as __version__  # the version lives at the ground layer
 
 if TYPE_CHECKING:  # pragma: no cover
     from pavemap.config import load_config, preset_config, preset_for

@@ -21,9 +21,9 @@ from typing import Any
 import typer
 from typer.core import TyperGroup
 
-from pavemap import __version__
 from pavemap.errors import PavemapError, SequenceError
 from pavemap.shutdown import prepare_quick_exit
+from pavemap.version import __version__
 
 USER_ERRORS = (SequenceError, PavemapError, OSError)  # what ends a command with one line, exit status 2
 #: How a failed read or write is worded, by errno (the rest: the system's own words).

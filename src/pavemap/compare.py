@@ -21,9 +21,9 @@ import numpy as np
 import shapely
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import local_tangent, origin_to_dict
 from pavemap.export.geojson import DefectLayer, features_to_geojson
 from pavemap.export.gis import CHANGES_GPKG, read_defect_layer, write_local_changes
+from pavemap.geo.tangent import local_tangent, origin_to_dict
 from pavemap.io.atomic import atomic_write_json
 from pavemap.types import DEFECT_CODES
 

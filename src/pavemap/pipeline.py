@@ -32,14 +32,13 @@ from pavemap.detect.config import DetectorConfig, FilterConfig
 from pavemap.errors import PavemapError
 from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_write_text
+from pavemap.io.hashes import hash_parts, hash_sequence
 from pavemap.io.sequence import DETECTIONS_FILE, read_detections, read_sequence
 from pavemap.run_folder import (
     RUN_FILE,
     STAGES,
     Stages,
     detect_parts,
-    hash_parts,
-    hash_sequence,
     keep_on_failure,
     mesh_parts,
     prepare_out,

@@ -12,19 +12,18 @@ gives; otherwise the stage is redone and the log says which parts changed.
 from __future__ import annotations
 
 import dataclasses
-import functools
-import hashlib
 import json
 import time
 from pathlib import Path
 
-from pavemap import __version__
 from pavemap.detect.config import DetectorConfig
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_write_json
+from pavemap.io.hashes import path_hash
 from pavemap.io.owned import PARTIAL, OutputFolder, claim
-from pavemap.io.sequence import DETECTIONS_FILE, SEQUENCE_FILE
+from pavemap.io.sequence import DETECTIONS_FILE
 from pavemap.types import Sequence
+from pavemap.version import code_version
 
 RUN_FILE = "run.json"
 STAGES = ("mesh", "detect", "fuse", "evaluate", "export")
@@ -35,60 +34,6 @@ COMPLETE = "metrics.json"
 RESUMABLE = ("mesh/", ".stages/", DETECTIONS_FILE, "run.log", "config.yaml", RUN_FILE)
 #: Mesh config fields that do not change the mesh (``resume`` only says whether a checkpoint may be used).
 MESH_NOT_RESULT = ("resume",)
-
-
-# ---------------------------------------------------------------------------- hashing
-
-
-def hash_sequence(seq: Sequence) -> str:
-    """Hash of ``sequence.json``, the truth files and each layer file's size and mtime."""
-    h = hashlib.sha256()
-    assert seq.root is not None
-    h.update((seq.root / SEQUENCE_FILE).read_bytes())
-    for rel in ("truth/height.npy", "truth/defects.geojson"):
-        p = seq.root / rel
-        if p.is_file():
-            h.update(p.read_bytes())
-    # Image contents are not hashed (too slow for long drives); size + mtime catch edits.
-    for f in seq.frames:
-        for v in f.views.values():
-            for rel in (v.image, v.semantics, v.depth):
-                if rel:
-                    st = (seq.root / rel).stat()
-                    h.update(f"{rel}:{st.st_size}:{st.st_mtime_ns}".encode())
-    return h.hexdigest()[:16]
-
-
-@functools.cache
-def code_version(root: Path | None = None) -> str:
-    """The pavemap version and a hash of the package's own code and shipped configs (``*.py``, ``*.yaml`` under
-    ``root``, the package by default): a stage done by other code is redone, not reused (the version alone stays
-    the same between commits; a rerun of the long-drive bench into an old folder once reused an earlier commit's
-    meshes)."""
-    root = Path(__file__).resolve().parent if root is None else Path(root)
-    h = hashlib.sha256()
-    for f in sorted(q for pat in ("*.py", "*.yaml") for q in root.rglob(pat)):
-        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
-    return f"{__version__}+{h.hexdigest()[:12]}"
-
-
-def hash_parts(*parts: object) -> str:
-    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def path_hash(path: str | Path | None) -> str | None:
-    """Content hash of a file, or of every file under a folder (names and bytes); None for no path."""
-    if path is None:
-        return None
-    p = Path(path)
-    if p.is_file():
-        return hashlib.sha256(p.read_bytes()).hexdigest()[:16]
-    if p.is_dir():
-        h = hashlib.sha256()
-        for f in sorted(q for q in p.rglob("*") if q.is_file()):
-            h.update(f.relative_to(p).as_posix().encode() + b"\0" + f.read_bytes())
-        return h.hexdigest()[:16]
-    return "missing"
 
 
 def mesh_parts(seq_key: str, mesh_cfg: object) -> dict:
@@ -217,5 +162,5 @@ def keep_on_failure(rel: str) -> bool:
     return any(rel == k or (k.endswith("/") and rel.startswith(k)) for k in RESUMABLE)
 
 
-__all__ = ["COMPLETE", "RUN_FILE", "STAGES", "Stages", "code_version", "detect_parts", "hash_parts", "hash_sequence",
-           "keep_on_failure", "legacy_run", "mesh_parts", "path_hash", "prepare_out", "why_changed"]
+__all__ = ["COMPLETE", "RUN_FILE", "STAGES", "Stages", "detect_parts", "keep_on_failure", "legacy_run", "mesh_parts",
+           "prepare_out", "why_changed"]

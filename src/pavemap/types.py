@@ -19,6 +19,8 @@ DEFECT_NAMES: dict[str, str] = {
     "D40": "pothole",
 }
 NUM_DEFECT_CLASSES = len(DEFECT_CODES)
+#: What fusion leaves in ``DefectInstance.priority`` until :func:`pavemap.maintain.assess` runs.
+UNASSESSED = "unassessed"
 #: Class names (normalised: lower case, ``_`` for separators) that are ground surface besides the road classes.
 GROUND_NAMES: frozenset[str] = frozenset({
     "curb", "kerb", "sidewalk", "terrain", "ground", "parking", "crosswalk", "road_marking", "lane_marking",

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pavemap.detect.boxes import box_ratio
 from pavemap.detect.config import FilterConfig
 from pavemap.io.sequence import load_semantics
 from pavemap.types import NUM_DEFECT_CLASSES, Detection, Sequence
@@ -50,31 +51,6 @@ class FilterResult:
     def kept_index(self) -> np.ndarray:
         """(K,) int64 input index of each kept detection."""
         return np.array([r["index"] for r in self.records if r["kept"]], dtype=np.int64)
-
-
-def integral_image(mask: np.ndarray) -> np.ndarray:
-    """(H, W) bool -> (H+1, W+1) int64 summed-area table with a zero first row and column."""
-    ii = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
-    np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1, out=ii[1:, 1:])
-    return ii
-
-
-def box_ratio(mask: np.ndarray, boxes: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """Share of True pixels of ``mask`` (H, W) inside each box (N, 4) x1 y1 x2 y2 -> (N,) float64.
-
-    Boxes are in full-resolution pixels, pixel-centre convention (column ``c`` has its centre at
-    ``u = c``, as :meth:`Camera.scaled`); a pixel counts when its centre lies in the box.
-    ``scale`` maps boxes onto a mask of a reduced size. Every box covers at least one pixel.
-    """
-    H, W = mask.shape
-    b = (np.asarray(boxes, dtype=np.float64).reshape(-1, 4) + 0.5) * scale - 0.5
-    c0 = np.clip(np.ceil(b[:, 0]), 0, W - 1).astype(np.int64)
-    r0 = np.clip(np.ceil(b[:, 1]), 0, H - 1).astype(np.int64)
-    c1 = np.clip(np.floor(b[:, 2]) + 1, c0 + 1, W).astype(np.int64)
-    r1 = np.clip(np.floor(b[:, 3]) + 1, r0 + 1, H).astype(np.int64)
-    ii = integral_image(mask)
-    inside = ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
-    return inside / ((r1 - r0) * (c1 - c0))
 
 
 def sanitize(seq: Sequence, detections: list[Detection]) -> tuple[list[Detection | None], list[str]]:

@@ -66,7 +66,7 @@ def box_paint_cover(paint: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     H, W = paint.shape
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     out = np.zeros(len(b))
-    for i, (x1, y1, x2, y2) in enumerate(b):  # pixel centres inside the box, as filter.box_ratio
+    for i, (x1, y1, x2, y2) in enumerate(b):  # pixel centres inside the box, as boxes.box_ratio
         c0, r0 = int(np.clip(np.ceil(x1), 0, W - 1)), int(np.clip(np.ceil(y1), 0, H - 1))
         c1, r1 = int(np.clip(np.floor(x2) + 1, c0 + 1, W)), int(np.clip(np.floor(y2) + 1, r0 + 1, H))
         sub = paint[r0:r1, c0:c1]
@@ -122,7 +122,7 @@ def mark_paint_and_ego(seq: Sequence, boxes_by_view: dict[tuple[int, str], tuple
     ``boxes_by_view``: (frame, camera) → (detection indices, boxes (n, 4)) of detections still "ok".
     Returns the paint cover per detection (len(reasons),), NaN where not measured.
     """
-    from pavemap.detect.filter import box_ratio
+    from pavemap.detect.boxes import box_ratio
     from pavemap.io.egomask import load_ego_mask
 
     cover = np.full(len(reasons), np.nan)

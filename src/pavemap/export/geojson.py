@@ -23,7 +23,7 @@ from shapely.geometry import MultiPolygon, Polygon, shape
 from shapely.geometry.polygon import orient
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import local_tangent, origin_from_dict, origin_to_dict
+from pavemap.geo.tangent import local_tangent, origin_from_dict, origin_to_dict
 from pavemap.io.atomic import atomic_write_json
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance, GeoOrigin
 

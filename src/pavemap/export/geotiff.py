@@ -33,8 +33,8 @@ from rasterio.windows import Window
 from scipy import ndimage
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import WGS84, local_tangent, origin_to_dict
 from pavemap.geo.crs import crs_label, output_crs
+from pavemap.geo.tangent import WGS84, local_tangent, origin_to_dict
 from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_path
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, GeoOrigin

@@ -34,10 +34,10 @@ from pyproj import CRS, Transformer
 from shapely.geometry import MultiPolygon, Point
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import WGS84, _apply, local_tangent, origin_from_dict
 from pavemap.export.geojson import PROPERTY_SCHEMA, DefectLayer, _polygons, instance_properties
 from pavemap.export.kml import write_kml
 from pavemap.geo.crs import crs_label, local_crs, output_crs
+from pavemap.geo.tangent import WGS84, _apply, local_tangent, origin_from_dict
 from pavemap.io.atomic import atomic_path
 from pavemap.types import DefectInstance, GeoOrigin, Sequence
 
@@ -138,7 +138,7 @@ def trajectory_layer(seq: Sequence, proj: _Projector, origin: GeoOrigin | None) 
 def survey_record(seq: Sequence | None, origin: GeoOrigin | None, crs: CRS, n_defects: int,
                   vehicle: str = "") -> dict:
     """The ``survey`` layer's one record (plain values)."""
-    from pavemap import __version__
+    from pavemap.version import __version__
 
     r = (origin.georef if origin is not None else None) or {}
     t0 = seq.frames[0].timestamp if seq is not None and seq.frames else None

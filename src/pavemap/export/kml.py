@@ -14,8 +14,8 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from pavemap.export.geo import local_tangent
 from pavemap.export.geojson import LONLAT_DECIMALS, _polygons, instance_properties
+from pavemap.geo.tangent import local_tangent
 from pavemap.io.atomic import atomic_path, atomic_write_text
 from pavemap.palette import DEFECT_HEX
 from pavemap.types import DEFECT_CODES, DefectInstance, GeoOrigin, Sequence

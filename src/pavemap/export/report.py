@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pavemap import __version__
 from pavemap.export.figures import CLASS_COLOURS, flatten_metrics, format_value, grid_extent, headline_metrics
 from pavemap.export.geojson import _polygons, instance_properties
 from pavemap.export.report_assets import CSS, JS
@@ -39,6 +38,7 @@ from pavemap.export.report_worklist import (
 from pavemap.geometry.grid import GridSpec
 from pavemap.io.atomic import atomic_write_text
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, DefectInstance, GeoOrigin
+from pavemap.version import __version__
 
 MAX_IMAGE_SIDE = 2400  # larger BEV images are downsampled for the page (the PNG files keep full size)
 

@@ -71,7 +71,7 @@ def write_fusion_files(out_dir: str | os.PathLike, result: FusionResult,
     (``GridSpec.to_dict``, plus the vertex grid of ``vertex_prob.npy`` under ``surface``).
     """
     from pavemap.export.gis import write_gis
-    from pavemap.maintain.segments import write_segments_csv, write_segments_geojson
+    from pavemap.export.segments import write_segments_csv, write_segments_geojson
 
     out = Path(out_dir)
     paths: dict[str, Path] = {}
@@ -145,8 +145,8 @@ def write_run(out_dir: str | os.PathLike, result: FusionResult, metrics: dict, *
     ``metrics['seconds']`` gains ``export`` and ``total`` (the sum of the stages) before
     ``metrics.json`` is written, last. ``surface`` (the road HeightField) places the surveyed area.
     """
-    from pavemap.export import write_outputs
     from pavemap.export.evidence import write_evidence
+    from pavemap.export.outputs import write_outputs
 
     t = time.perf_counter()
     out = Path(out_dir)

@@ -12,9 +12,9 @@ import numpy as np
 from shapely import affinity
 from shapely.geometry import Point, Polygon, box
 
+from pavemap.geometry.chainage import route_polyline
 from pavemap.geometry.grid import GridSpec
 from pavemap.maintain import UNASSESSED, assess_instances
-from pavemap.maintain.chainage import route_polyline
 from pavemap.types import DEFECT_CODES, DefectInstance, GeoOrigin
 
 W_SEV = (0.3, 0.4, 0.7, 1.0)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from pavemap.export.geojson import PROPERTY_SCHEMA, instance_properties
 from pavemap.io.atomic import atomic_write_text
-from pavemap.maintain.policy import PRIORITIES, UNASSESSED
-from pavemap.types import DefectInstance, GeoOrigin
+from pavemap.maintain.policy import PRIORITIES
+from pavemap.types import UNASSESSED, DefectInstance, GeoOrigin
 
 # What a road engineer reads first: which defect, how urgent, what, how bad, how big, where.
 _LEAD = ("id", "priority", "priority_rank", "code", "name", "severity_level", "area_m2", "length_m",

@@ -27,8 +27,7 @@ from pavemap.fuse.footprint import detection_footprints, instance_outlines, inst
 from pavemap.fuse.instances import build_instances
 from pavemap.fuse.maps import bev_grid, splat
 from pavemap.geometry.grid import GridSpec
-from pavemap.maintain.policy import UNASSESSED
-from pavemap.types import DEFECT_CODES, DefectInstance, Detection, Sequence
+from pavemap.types import DEFECT_CODES, UNASSESSED, DefectInstance, Detection, Sequence
 
 # Filter outcomes that are not "unusable input" (every other reason counts as invalid).
 _FILTER_OUTCOMES = ("kept", "low_conf", "off_road", "paint", "ego")  # paint / ego: pavemap.detect.paint

@@ -15,8 +15,7 @@ from scipy import ndimage
 from shapely.geometry import MultiPolygon, Polygon, shape
 from shapely.ops import unary_union
 
-from pavemap.maintain.policy import UNASSESSED
-from pavemap.types import NUM_DEFECT_CLASSES, DefectInstance
+from pavemap.types import NUM_DEFECT_CLASSES, UNASSESSED, DefectInstance
 
 
 def label_components(mask: np.ndarray, gap_cells: int = 0) -> tuple[np.ndarray, int]:

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import check_origin
 from pavemap.geo.georef import Georef, georeference, scale_poses
+from pavemap.geo.tangent import check_origin
 from pavemap.io.gps import GpsTrack, csv_has_gps, read_exif_gps, read_gps, read_gps_csv, read_oxts
 from pavemap.types import GeoOrigin, Sequence
 
@@ -123,8 +123,7 @@ def attach_geo(seq: Sequence, geo: GeoInput | None, *, poses: str | os.PathLike 
         return None
     lever = geo.lever_arm
     if lever is None and track.kind == "oxts":
-        from pavemap.io.gps import oxts_antenna_in_cam0
-        from pavemap.io.kitti import A_KITTI_TO_WORLD
+        from pavemap.io.gps import A_KITTI_TO_WORLD, oxts_antenna_in_cam0
 
         p = oxts_antenna_in_cam0(geo.gps)  # type: ignore[arg-type]
         lever = None if p is None else tuple(float(v) for v in A_KITTI_TO_WORLD @ p)

@@ -6,7 +6,7 @@ interpolated to each fix's time (not the fixes to the frames', so an outlier fix
 pair). The fixes are projected into an azimuthal equidistant plane, the robust fit of
 :mod:`pavemap.geo.fit` maps the trajectory onto them, and the plane is then re-centred on the
 fitted origin and refitted, so that the result is exactly the frame of
-:class:`pavemap.export.geo.LocalTangent`: world (0, 0) at the origin, world +x at ``heading_deg``.
+:class:`pavemap.geo.tangent.LocalTangent`: world (0, 0) at the origin, world +x at ``heading_deg``.
 
 A GPS antenna is not at the camera: ``lever_arm`` (metres, vehicle frame x forward, y left, z up,
 antenna minus the rig's camera centre) moves each trajectory position to where the antenna was,
@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pavemap.errors import PavemapError
-from pavemap.export.geo import local_tangent
 from pavemap.geo.fit import Fit2D, robust_fit, umeyama_2d
+from pavemap.geo.tangent import local_tangent
 from pavemap.io.gps import GpsTrack
 from pavemap.types import GeoOrigin, Sequence
 

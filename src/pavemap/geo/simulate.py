@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pavemap.export.geo import local_tangent
+from pavemap.geo.tangent import local_tangent
 from pavemap.io.gps import GpsTrack, make_track
 from pavemap.types import GeoOrigin, Sequence
 

@@ -79,7 +79,7 @@ def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float 
     or few of them beside the lane (a parked car's sill), that plane's tilt is set by a handful of points and
     its extrapolation to the camera moves the height (README, "One estimate of the camera height").
     """
-    from pavemap.maintain.chainage import chainage, route_polyline
+    from pavemap.geometry.chainage import chainage, route_polyline
 
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])

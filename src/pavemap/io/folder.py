@@ -31,7 +31,7 @@ import numpy as np
 from PIL import Image
 
 from pavemap.errors import PavemapError
-from pavemap.geo.attach import GeoInput, attach_geo
+from pavemap.geo.attach import GeoInput, attach_geo  # upward (io -> geo), allowed: moves to commands with issue 42
 from pavemap.io.atomic import atomic_path
 from pavemap.io.egomask import resolve_ego_mask, store_ego_masks
 from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, write_sequence

@@ -355,6 +355,10 @@ def _calib_rt(path: Path) -> np.ndarray:
     return T
 
 
+#: KITTI camera frame (x right, y down, z forward) → pavemap world (x forward, y left, z up).
+A_KITTI_TO_WORLD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
 def oxts_antenna_in_cam0(path: str | os.PathLike) -> np.ndarray | None:
     """(3,) the OXTS unit's position in KITTI cam0 coordinates (x right, y down, z forward; metres), from the
     raw date folder's ``calib_imu_to_velo.txt`` and ``calib_velo_to_cam.txt`` (the folder above the drive);

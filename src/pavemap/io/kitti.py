@@ -36,9 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
-from pavemap.geo.attach import GeoInput, attach_geo
+from pavemap.geo.attach import GeoInput, attach_geo  # upward (io -> geo), allowed: moves to commands with issue 42
 from pavemap.io.atomic import atomic_path
 from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, list_images
+from pavemap.io.gps import A_KITTI_TO_WORLD
 from pavemap.io.sequence import SequenceError, check_intrinsics, save_depth, write_sequence
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
@@ -53,8 +54,6 @@ KITTI_RAW: dict[str, tuple[str, int, int]] = {
     "08": ("2011_09_30_drive_0028", 1100, 5170), "09": ("2011_09_30_drive_0033", 0, 1590),
     "10": ("2011_09_30_drive_0034", 0, 1200),
 }
-#: KITTI camera frame (x right, y down, z forward) → pavemap world (x forward, y left, z up).
-A_KITTI_TO_WORLD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 @dataclass

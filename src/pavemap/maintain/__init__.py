@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pavemap.geometry.chainage import chainage, route_polyline
 from pavemap.maintain.assessment import DetectorCheck, apply_detector_check, assess_coverage
-from pavemap.maintain.chainage import chainage, route_polyline
 from pavemap.maintain.config import MaintenanceConfig
 from pavemap.maintain.policy import (
     POSITIONS,

@@ -35,7 +35,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
-from pavemap.maintain.chainage import chainage, cumulative_length
+from pavemap.geometry.chainage import chainage, cumulative_length
 from pavemap.types import DefectInstance
 
 POTHOLE, CRACK_CLASSES = 3, (0, 1)
@@ -80,7 +80,7 @@ def measure_instances(instances: list[DefectInstance], surface, labels: np.ndarr
     surface: HeightField-like (``heights`` (ny, nx) and ``valid`` (ny, nx) bool torch or numpy, ``x0``,
     ``y0``, ``res``); labels (ny, nx) int instance id per vertex (0 none), e.g.
     ``FusionResult.instance_labels``; observed (ny, nx) bool or None (all observed); route (M, 2) from
-    :func:`pavemap.maintain.chainage.route_polyline` or None (then no orientation); samples (N, 3) world
+    :func:`pavemap.geometry.chainage.route_polyline` or None (then no orientation); samples (N, 3) world
     height measurements (depth pixels, ground points) or None: where enough fall inside a pothole they
     give its depth instead of the (smoother) surface. A pothole's own ``extra["floor_samples"]`` (points (N, 3),
     road plane (point, normal)) (the floor sweep's, :mod:`pavemap.maintain.floor_sweep`; taken out of

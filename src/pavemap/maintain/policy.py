@@ -24,15 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
-from pavemap.types import DEFECT_CODES
+from pavemap.types import DEFECT_CODES, UNASSESSED
 
 LEVELS: tuple[str, ...] = ("low", "medium", "high")
 CERTAINTIES: tuple[str, ...] = ("confirmed", "probable", "single sighting")
 #: Most urgent first; ``priority_rank`` sorts by this order, then by the score.
 PRIORITIES: tuple[str, ...] = ("repair now", "schedule", "monitor")
 POSITIONS: tuple[str, ...] = ("wheel path", "lane centre", "edge")
-#: What fusion leaves in ``DefectInstance.priority`` until :func:`pavemap.maintain.assess` runs.
-UNASSESSED = "unassessed"
 BUILTIN_POLICY = Path(__file__).resolve().parent.parent / "configs" / "maintenance_policy.yaml"
 #: Other names of a measure (and the factor to the policy's unit), tried in order: synthetic truth
 #: records carry ``depth_max_m`` (the carved surface's deepest point), ``depth_m`` (the generator's

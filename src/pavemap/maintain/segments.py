@@ -26,15 +26,13 @@ simplifications:
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from shapely.geometry import LineString, Point
 from shapely.ops import substring
 
-from pavemap.maintain.chainage import cumulative_length
+from pavemap.geometry.chainage import cumulative_length
 from pavemap.maintain.policy import LEVELS, Policy, load_policy, measure_value
 from pavemap.types import DEFECT_CODES
 
@@ -254,26 +252,6 @@ def segments_csv_text(segments: list[Segment]) -> str:
     return buf.getvalue()
 
 
-def write_segments_csv(path: str | os.PathLike, segments: list[Segment]) -> Path:
-    """Write ``segments.csv`` atomically; returns its path."""
-    from pavemap.io.atomic import atomic_write_text
-
-    return atomic_write_text(path, segments_csv_text(segments))
-
-
-def write_segments_geojson(path: str | os.PathLike, segments: list[Segment], geo_origin: object) -> Path:
-    """``segments.geojson``: the corridors as WGS84 polygons with the segment records (georeferenced runs only)."""
-    from pavemap.export.geojson import features_to_geojson
-    from pavemap.io.atomic import atomic_write_json
-
-    fc = features_to_geojson([s.polygon for s in segments], segment_records(segments), geo_origin,  # type: ignore[arg-type]
-                             ids=[s.id for s in segments],
-                             meta={"format": "pavemap-segments/1", "count": len(segments),
-                                   "index": "PCI-like, not a certified ASTM D6433 survey"})
-    return atomic_write_json(path, fc, indent=None)
-
-
 __all__ = ["CDV_Q_SLOPE", "DENSITY_QUANTITY", "RATINGS", "SEGMENT_SCHEMA", "Segment", "build_segments",
            "corrected_deduct", "corridor", "deduct_value", "grade_of", "rating_of", "score_segment", "segment_edges",
-           "segment_records", "segments_csv_text", "write_segments_csv",
-           "write_segments_geojson"]
+           "segment_records", "segments_csv_text"]

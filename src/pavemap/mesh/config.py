@@ -274,3 +274,47 @@ def _check_types(cfg: MeshConfig) -> None:
         if not good:
             names = " or ".join("null" if k is type(None) else k.__name__ for k in kinds)
             raise PavemapError(f"mesh.{f.name} must be {names}, got {value!r}")
+
+
+@dataclass
+class GroundConfig:
+    """Knobs of :func:`pavemap.mesh.ground_points.find_ground_points` (defaults chosen on the synthetic and KITTI
+    benches)."""
+
+    scale: float = 1.0  # image scale for matching
+    prior_height: float = 1.5  # m: centres the depth search and the range mask, never enters the geometry
+    min_range: float = 2.0  # m, ground distance of usable pixels on the prior plane
+    max_range: float = 25.0
+    horizon_margin_deg: float = 3.0  # pixels must look at least this far below the horizon
+    max_gap: int = 3  # frames between a reference view and its partners
+    max_partners: int = 4
+    min_overlap: float = 0.15  # fraction of the reference's ground that a partner must see
+    max_corners: int = 400
+    min_distance: int = 7  # px between corners
+    quality: float = 0.003  # goodFeaturesToTrack quality level (road texture is weak)
+    patch: int = 11  # sweep patch side (px)
+    sweep_range: float = 0.5  # +- log depth around the prior plane's depth (prior height x0.6 .. x1.65)
+    coarse_px: float = 2.0  # coarse hypothesis spacing along the epipolar line (px)
+    sweep_max_steps: int = 200  # at most this many coarse hypotheses (the spacing grows beyond)
+    sparse_coarse: bool = True  # coarse sweep on every other pixel of the patch (3x faster, same points)
+    min_ncc: float = 0.8
+    min_drop: float = 0.05  # NCC must fall by this much 2 px either side of the peak (edges along the line)
+    min_contrast: float = 2.0  # grey levels (std of the reference patch)
+    max_err_px: float = 1.0  # reprojection error allowed per observation
+    min_angle_deg: float = 1.0
+    min_views: int = 2
+    neighbour_m: float = 0.15  # drop points this far off the robust surface of their neighbours
+    # a point matched into one partner only is checked at the depth found in the other views of its camera
+    # within max_gap frames: where every one that sees the spot on its ground scores below this NCC, it is
+    # dropped (a moving vehicle's flank matches one neighbouring frame, not the next; the road still scores)
+    static_ncc: float = 0.5
+    # the far pass: every ``far_every``-th view matches corners between 0.8 x max_range and far_range into the
+    # first later view of its camera ``far_baseline_m`` away, so the road ahead of a drive's end is observed
+    far_range: float = 60.0  # m (0: no far pass)
+    far_baseline_m: float = 4.0
+    far_every: int = 2
+    far_corners: int = 150
+    far_max_gap: int = 15  # frames
+    far_horizon_deg: float = 1.5  # the far pass's horizon margin (3 degrees end the road 31 m ahead of 1.65 m)
+    corridor_m: float = 8.0  # without semantics: ground must lie this close to the trajectory
+    use_semantics: bool = True

@@ -18,7 +18,7 @@ from pavemap.geometry.triangulate import parabola_vertex, second_peak
 from pavemap.types import Camera
 
 if TYPE_CHECKING:
-    from pavemap.mesh.ground_points import GroundConfig
+    from pavemap.mesh.config import GroundConfig
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 

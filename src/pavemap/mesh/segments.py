@@ -35,6 +35,7 @@ from pavemap.mesh.setup import trajectory_grid
 from pavemap.mesh.stitch import Stitcher, core_ramp, own_path, segment_weights
 from pavemap.mesh.texture_check import texture_summary
 from pavemap.mesh.tiles import SEGMENTS_DIR, TileJob, tile_stamp
+from pavemap.mesh.train import reconstruct_piece
 from pavemap.types import Sequence
 
 log = logging.getLogger("pavemap")
@@ -404,3 +405,21 @@ def _drive_metrics(seq: Sequence, mesh: RoadMesh, rows: list[dict], notes: list[
     if has_truth_height(seq.root):
         metrics.update(truth_metrics(mesh, seq.root, mesh.observed))
     return metrics
+
+
+def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool = True,
+                heldout_frames: set[int] | None = None) -> tuple[RoadMesh, dict]:
+    """Stage 1 on a sequence: returns the mesh and its metrics; writes outputs to ``out_dir`` when given.
+
+    Metrics: psnr (held-out road pixels), sem_acc, height_rmse (with synthetic truth), seconds,
+    vertices, faces, device, history (per epoch), warnings. A drive longer than 1.5 ``config.segment_m``
+    is reconstructed in segments (:func:`pavemap.mesh.segments.reconstruct_segmented`); ``heldout_frames``
+    (frame indices held out instead of every ``holdout_every``-th) always gives one piece.
+    """
+    if heldout_frames is None:
+        seq, note = skip_standing(seq, config)
+        if note:
+            warnings.warn(note, stacklevel=2)
+        if needs_segments(seq, config):
+            return reconstruct_segmented(seq, out_dir, config, progress)
+    return reconstruct_piece(seq, out_dir, config, progress, heldout_frames)

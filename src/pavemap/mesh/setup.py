@@ -12,9 +12,9 @@ import torch
 
 from pavemap.errors import PavemapError
 from pavemap.mesh.bake import batch_hits, pool_hits
-from pavemap.mesh.config import MeshConfig
+from pavemap.mesh.config import GroundConfig, MeshConfig
 from pavemap.mesh.data import PixelPool, ScaledImages, build_pool, finite_views, split_frames
-from pavemap.mesh.ground_points import GroundConfig, GroundPoints, find_ground_points
+from pavemap.mesh.ground_points import GroundPoints, find_ground_points
 from pavemap.mesh.init_surface import path_cuts, travel_direction
 from pavemap.mesh.model import MeshGrid, RoadMeshModel, build_grid
 from pavemap.types import SemanticClass, Sequence, View

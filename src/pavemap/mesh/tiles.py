@@ -69,11 +69,11 @@ def tile_runner() -> TileRunner | None:
 def segment_tile(seq: Sequence, cfg: MeshConfig, heldout: set[int], label: str) -> tuple[RoadMesh, dict]:
     """Stage 1 on ``seq`` (a segment's frames) alone, holding out ``heldout`` (frame indices): the tile and
     its metrics. Its warnings are re-issued prefixed with ``label``."""
-    from pavemap.mesh.train import reconstruct
+    from pavemap.mesh.train import reconstruct_piece
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        tile, metrics = reconstruct(seq, None, cfg, progress=False, heldout_frames=heldout)
+        tile, metrics = reconstruct_piece(seq, None, cfg, progress=False, heldout_frames=heldout)
     for w in caught:
         warnings.warn(f"{label}: {w.message}", stacklevel=3)
     return tile, metrics
@@ -105,7 +105,7 @@ def tile_stamp(conf: dict, plan: dict, seq: Sequence, positions: tuple[int, ...]
 
 def stamp_config(cfg: MeshConfig) -> dict:
     """The settings a tile depends on, and the code that made it (:func:`pavemap.run_folder.code_version`)."""
-    from pavemap.run_folder import code_version
+    from pavemap.version import code_version
 
     return {**{k: v for k, v in cfg.to_dict().items() if k not in ("device", "threads", "resume")},
             "code": code_version()}

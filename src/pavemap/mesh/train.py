@@ -49,23 +49,10 @@ from pavemap.types import Sequence
 LOSS_KEYS = ("loss", "rgb", "sem", "depth", "smooth")
 
 
-def reconstruct(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool = True,
-                heldout_frames: set[int] | None = None) -> tuple[RoadMesh, dict]:
-    """Stage 1 on a sequence: returns the mesh and its metrics; writes outputs to ``out_dir`` when given.
-
-    Metrics: psnr (held-out road pixels), sem_acc, height_rmse (with synthetic truth), seconds,
-    vertices, faces, device, history (per epoch), warnings. A drive longer than 1.5 ``config.segment_m``
-    is reconstructed in segments (:func:`pavemap.mesh.segments.reconstruct_segmented`); ``heldout_frames``
-    (frame indices held out instead of every ``holdout_every``-th) always gives one piece.
-    """
-    from pavemap.mesh.segments import needs_segments, reconstruct_segmented, skip_standing
-
-    if heldout_frames is None:
-        seq, note = skip_standing(seq, config)
-        if note:
-            warnings.warn(note, stacklevel=2)
-        if needs_segments(seq, config):
-            return reconstruct_segmented(seq, out_dir, config, progress)
+def reconstruct_piece(seq: Sequence, out_dir: Path | None, config: MeshConfig, progress: bool = True,
+                      heldout_frames: set[int] | None = None) -> tuple[RoadMesh, dict]:
+    """Stage 1 on a sequence in one piece: the mesh and its metrics (:func:`pavemap.mesh.segments.reconstruct`
+    decides first whether a long drive is cut into segments, each of which comes here)."""
     threads_before = torch.get_num_threads()
     if config.threads:
         torch.set_num_threads(int(config.threads))

@@ -27,10 +27,9 @@ from pathlib import Path
 
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_write_json
+from pavemap.network.folder import FORMAT, NETWORK_FILE, read_network
 from pavemap.network.manifest import Drive, Manifest, load_manifest
 
-NETWORK_FILE = "network.json"
-FORMAT = "pavemap-network/1"
 DRIVES_DIR = "drives"
 DEFAULT_RETRIES = 2
 Echo = Callable[[str], None]
@@ -83,7 +82,7 @@ def run_drive(task: dict) -> dict:
     task gives the same run folder."""
     import socket
 
-    import pavemap
+    from pavemap import pipeline as pavemap  # pavemap.run is the pipeline's run (the package face sits above)
     from pavemap.mesh.tiles import tiles_run_by
 
     t = time.perf_counter()
@@ -146,7 +145,7 @@ def drive_config(manifest: Manifest, drive: Drive, seq: object):  # noqa: ANN201
 
 
 def config_hash(cfg: object) -> str:
-    from pavemap.run_folder import hash_parts
+    from pavemap.io.hashes import hash_parts
 
     return hash_parts(cfg.to_dict())  # type: ignore[attr-defined]
 
@@ -163,7 +162,8 @@ def is_current(seq: object, cfg: object, run: Path) -> bool:
     detect and fuse stamps holding the keys :func:`pavemap.run` would compute now."""
     from pavemap.detect.backends import resolve_backend
     from pavemap.device import resolve_device
-    from pavemap.run_folder import COMPLETE, detect_parts, hash_parts, hash_sequence, mesh_parts
+    from pavemap.io.hashes import hash_parts, hash_sequence
+    from pavemap.run_folder import COMPLETE, detect_parts, mesh_parts
 
     if not (run / COMPLETE).is_file():
         return False
@@ -267,20 +267,6 @@ def _run_serial(tasks: list[dict], task_fn: Callable[[dict], dict],
 
 
 # ---------------------------------------------------------------------------- the driver
-
-
-def read_network(net: str | os.PathLike) -> dict:
-    """``NETWORK/network.json``; PavemapError when ``net`` is not a network folder."""
-    p = Path(net) / NETWORK_FILE
-    try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PavemapError(f"{net}: no {NETWORK_FILE} (is it a folder `pavemap batch` wrote?)") from None
-    except (OSError, ValueError) as e:
-        raise PavemapError(f"{p}: cannot read ({e})") from None
-    if not isinstance(d, dict) or d.get("format") != FORMAT or not isinstance(d.get("drives"), list):
-        raise PavemapError(f"{p}: not a pavemap network status file ({FORMAT})")
-    return d
 
 
 def _plan(manifest: Manifest, net: Path, previous: dict[str, dict], threads: int = 1
@@ -420,5 +406,5 @@ def register_line(summary: dict) -> str:
             f"not seen again {c.get('not seen again', 0)}) in {summary['path']}")
 
 
-__all__ = ["NETWORK_FILE", "cluster", "config_from_dict", "drive_config", "is_current", "read_network",
+__all__ = ["cluster", "config_from_dict", "drive_config", "is_current",
            "register_line", "run_batch", "run_drive"]

@@ -110,9 +110,9 @@ def _trajectory(gpkg: Path, to_reg: Transformer) -> object | None:
 def load_drive(net: Path, entry: dict, reg_crs: CRS | None) -> tuple[DriveDefects, CRS]:
     """A finished drive's defects in the register CRS (``reg_crs`` None: this drive's UTM zone)."""
     from pavemap.compare import _collect
-    from pavemap.export.geo import local_tangent
     from pavemap.export.gis import SURVEY_GPKG, read_defect_layer
     from pavemap.geo.crs import output_crs
+    from pavemap.geo.tangent import local_tangent
 
     gpkg = net / entry["run"] / SURVEY_GPKG
     layer = read_defect_layer(gpkg)
@@ -346,7 +346,7 @@ def build_register(net: str | os.PathLike, grow_ratio: float = GROW_RATIO, floor
     Returns the summary (also in ``register.json``).
     """
     from pavemap.geo.crs import crs_label
-    from pavemap.network.batch import read_network
+    from pavemap.network.folder import read_network
 
     if not (np.isfinite(grow_ratio) and grow_ratio >= 1.0):
         raise PavemapError(f"grow_ratio must be >= 1, got {grow_ratio}")

@@ -113,7 +113,7 @@ def _svg(gpkg: Path) -> str:
 
 def write_network_page(net: str | os.PathLike) -> Path:
     """Write ``NETWORK/network.html`` from ``network.json`` and ``register.gpkg`` (when built)."""
-    from pavemap.network.batch import read_network
+    from pavemap.network.folder import read_network
     from pavemap.network.register import REGISTER_GPKG
 
     net = Path(net)

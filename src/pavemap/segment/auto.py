@@ -92,7 +92,8 @@ def has_semantics(seq: Sequence) -> bool:
 
 
 def _stamp(seq: Sequence, arch: str, path: Path) -> dict:
-    from pavemap.run_folder import code_version, hash_sequence
+    from pavemap.io.hashes import hash_sequence
+    from pavemap.version import code_version
 
     st = path.stat()
     return {"arch": arch, "weights": str(path.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns,

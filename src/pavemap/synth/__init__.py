@@ -21,8 +21,9 @@ from pavemap.synth.generate import (
 from pavemap.synth.params import CLASSES, WorldParams
 from pavemap.synth.render import RenderOutput, render_view
 from pavemap.synth.rig import perturb_poses, pose_errors
+from pavemap.synth.scene import World
 from pavemap.synth.simdetector import SimDetectorConfig, detect_sequence, read_detection_truth
-from pavemap.synth.world import World, make_world
+from pavemap.synth.world import make_world
 
 __all__ = [
     "CLASSES",

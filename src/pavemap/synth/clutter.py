@@ -1,6 +1,6 @@
 """Clutter of the synthetic world: parked cars, buildings, walls, poles, trees and bushes, and their shadows.
 
-Objects are oriented boxes ``(Nb, 12)`` and spheres ``(Ns, 8)`` (see :class:`pavemap.synth.world.World`).
+Objects are oriented boxes ``(Nb, 12)`` and spheres ``(Ns, 8)`` (see :class:`pavemap.synth.scene.World`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 from pavemap.synth.params import BUILDING, OBJECT_KINDS, TERRAIN, VEHICLE
 
 if TYPE_CHECKING:
-    from pavemap.synth.world import World
+    from pavemap.synth.scene import World
 
 # ---------------------------------------------------------------------------- clutter
 

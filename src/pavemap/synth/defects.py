@@ -1,7 +1,7 @@
 """Defects of the synthetic world: placement of cracks, alligator patches and potholes, and off-road decoys.
 
 A defect is a dict (``kind`` ``line`` with a polyline, or ``blob`` with an ellipse-like outline);
-:func:`item_tables` packs them into the padded tensors the renderer reads.
+:func:`pavemap.synth.scene.item_tables` packs them into the padded tensors the renderer reads.
 """
 
 from __future__ import annotations
@@ -10,12 +10,9 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
-
-from pavemap.synth.params import DECOY_ID_OFFSET
 
 if TYPE_CHECKING:
-    from pavemap.synth.world import World
+    from pavemap.synth.scene import World
 
 # ---------------------------------------------------------------------------- defects
 
@@ -189,46 +186,3 @@ def make_decoys(w: World, rng: np.random.Generator) -> list[dict]:
         d["centre"] = line[len(line) // 2].tolist()
         out.append(d)
     return out
-
-
-def item_tables(w: World, dev: torch.device) -> dict:
-    """Pack defects + decoys into padded tensors and an s-bin index (2 m bins → up to K items)."""
-    items = list(w.defects) + list(w.decoys)
-    n = len(items)
-    M = 12
-    lines = np.zeros((max(n, 1), M, 2), np.float32)
-    prm = np.zeros((max(n, 1), 16), np.float32)
-    aabb = np.zeros((max(n, 1), 4), np.float32)
-    aabb[:] = [1e9, 1e9, -1e9, -1e9]
-    for k, d in enumerate(items):
-        aabb[k] = d["aabb"]
-        decoy = k >= len(w.defects)
-        code = (d["id"] + DECOY_ID_OFFSET) if decoy else (d["id"] + 1)
-        cls = 4 if decoy else d["cls"]
-        if d["kind"] == "line":
-            ln = np.asarray(d["line"], np.float32)
-            lines[k, : len(ln)] = ln
-            lines[k, len(ln):] = ln[-1]
-            prm[k, :5] = [cls, code, d["width_m"], d["band_m"], d["darkness"]]
-        else:
-            prm[k, :16] = [cls, code, d.get("width_m", 0.0), 0.0, d["darkness"], d["centre"][0], d["centre"][1],
-                           d["ax"], d["ay"], d["rot"], d["harm"][0], d["harm"][1], d["phase"][0], d["phase"][1],
-                           d.get("cell_m", 0.2), float(d["id"] % 997)]
-    bin_m = 2.0
-    s_min = float(w.cl_s[0]) - 60.0
-    nb = int((float(w.cl_s[-1]) + 60.0 - s_min) / bin_m) + 1
-    lists: list[list[int]] = [[] for _ in range(nb)]
-    for k, d in enumerate(items):
-        b0 = int((d["s_range"][0] - 1.0 - s_min) / bin_m)
-        b1 = int((d["s_range"][1] + 1.0 - s_min) / bin_m)
-        for b in range(max(0, b0), min(nb - 1, b1) + 1):
-            lists[b].append(k)
-    K = max(1, max((len(x) for x in lists), default=1))
-    table = np.full((nb, K), -1, np.int64)
-    for b, x in enumerate(lists):
-        table[b, : len(x)] = x
-    return {
-        "n": n, "lines": torch.as_tensor(lines, device=dev), "prm": torch.as_tensor(prm, device=dev),
-        "aabb": torch.as_tensor(aabb, device=dev), "table": torch.as_tensor(table, device=dev),
-        "bin_m": bin_m, "s_min": s_min,
-    }

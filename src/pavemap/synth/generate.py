@@ -32,7 +32,8 @@ from pavemap.synth.defects import blob_polygon, blob_q_np
 from pavemap.synth.params import CLASSES, torch_threads
 from pavemap.synth.render import render_view
 from pavemap.synth.rig import DEFAULT_SCALE, RIGS, camera_pose, rig_cameras, vehicle_poses
-from pavemap.synth.world import World, make_world, pothole_dent, pothole_window
+from pavemap.synth.scene import World
+from pavemap.synth.world import make_world, pothole_dent, pothole_window
 from pavemap.types import DEFECT_CODES, DEFECT_NAMES, Frame, GeoOrigin, SemanticClass, Sequence, View
 
 DEPTH_MODES = ("none", "sparse", "dense")

@@ -20,7 +20,7 @@ import torch
 from pavemap.synth.surface import bilinear_t
 
 if TYPE_CHECKING:
-    from pavemap.synth.world import World
+    from pavemap.synth.scene import World
 
 FAR_M = 220.0  # horizontal distance beyond which the ground is not rendered (haze → sky colour)
 MARCH_STEPS = 7

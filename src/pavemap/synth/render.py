@@ -27,8 +27,8 @@ from pavemap.synth.params import (
     torch_threads,
 )
 from pavemap.synth.raycast import BOX_EDGES, intersect_boxes, intersect_ground, intersect_spheres, screen_rects
+from pavemap.synth.scene import World
 from pavemap.synth.surface import bilinear_t, ground_label, markings, st_lookup, value_noise
-from pavemap.synth.world import World
 from pavemap.types import Camera
 
 SHADOW_BIT = 1 << 14

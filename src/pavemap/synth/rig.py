@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pavemap.synth.world import World
+from pavemap.synth.scene import World
 from pavemap.types import Camera
 
 # R_veh_cam for yaw 0, pitch 0: camera z = vehicle x, camera x = -vehicle y, camera y = -vehicle z
@@ -84,8 +84,6 @@ def vehicle_poses(world: World, rng: np.random.Generator) -> tuple[np.ndarray, n
     t = lane_t + 0.15 * np.sin(s / 23.0 + ph)
     dt_ds = 0.15 / 23.0 * np.cos(s / 23.0 + ph)
     if p.path is not None:  # a given trajectory: its own spacing (stops, gaps) in the ego lane's centre
-        from pavemap.synth.trajectory import path_frames_s
-
         s = np.interp(path_frames_s(np.asarray(p.path)), world.cl_ego_u, world.cl_s)
         t, dt_ds = np.full(F, lane_t), np.zeros(F)
     xy = world.xy_of_st(s, t)
@@ -107,6 +105,12 @@ def vehicle_poses(world: World, rng: np.random.Generator) -> tuple[np.ndarray, n
         poses[i, :3, 3] = [P[0], P[1], zc]
         poses[i, 3, 3] = 1.0
     return poses, ts
+
+
+def path_frames_s(path_xyz: np.ndarray) -> np.ndarray:
+    """(F,) ego path length of each frame (standing frames repeat it)."""
+    xy = np.asarray(path_xyz, dtype=np.float64)[:, :2]
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
 
 
 def camera_pose(T_world_veh: np.ndarray, m: Mount) -> np.ndarray:

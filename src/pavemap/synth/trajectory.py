@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 from pavemap.errors import PavemapError
 from pavemap.geometry.grid import GridSpec
 from pavemap.synth.params import CENTRELINE_DS, WorldParams
+from pavemap.synth.rig import path_frames_s
 
 log = logging.getLogger("pavemap")
 BASE_RES = 1.0  # m, the raster of the road's height along its passes
@@ -49,12 +50,6 @@ def read_trajectory(path: str | os.PathLike, frames: int | None = None, start: i
     if not np.all(np.isfinite(c)):
         raise PavemapError(f"{path}: non-finite positions among poses {start}..{start + n - 1}")
     return c - c[0]
-
-
-def path_frames_s(path_xyz: np.ndarray) -> np.ndarray:
-    """(F,) ego path length of each frame (standing frames repeat it)."""
-    xy = np.asarray(path_xyz, dtype=np.float64)[:, :2]
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
 
 
 def ego_lane_t(p: WorldParams) -> float:
