@@ -71,8 +71,10 @@ def check_pose(T: np.ndarray, tol: float = 1e-4) -> str | None:
         return "pose contains NaN or infinity"
     R = T[:3, :3]
     err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > tol:
-        return f"pose rotation is not orthonormal (max |R R^T - I| = {err:.2e})"
+    if err > tol:  # the tolerance covers values rounded to a few digits in a file, not a scaled matrix
+        scale = np.sqrt(np.linalg.eigvalsh(R @ R.T).clip(0))
+        return (f"pose rotation is not orthonormal (max |R R^T - I| = {err:.2e}, allowed {tol:.0e}; its axes are "
+                f"scaled by {scale.min():.4g}..{scale.max():.4g}, a rotation's by 1)")
     det = np.linalg.det(R)
     if abs(det - 1.0) > tol:
         return f"pose rotation has det {det:.4f}, expected 1 (a reflection?)"
