@@ -38,6 +38,13 @@ def no_traceback(p: subprocess.CompletedProcess) -> None:
     assert "Traceback" not in p.stderr and "Traceback" not in p.stdout, p.stderr[-3000:]
 
 
+def last_error(p: subprocess.CompletedProcess) -> str:
+    """The ``error: ...`` line, which ends the output (a progress bar may precede it on the same line)."""
+    err = p.stderr[p.stderr.rindex("error: "):].strip()
+    assert "\n" not in err, err
+    return err
+
+
 def complete(out: Path) -> bool:
     """A run folder that looks finished: its completion file and an owner marker saying complete."""
     marker = out / ".pavemap-owner.json"
@@ -159,8 +166,8 @@ def test_full_disk_is_one_line_and_the_rerun_resumes(seq, tmp_path):
         p = pavemap("run", seq, "--out", out, *FAST)
         no_traceback(p)
         assert p.returncode == 2, p.stderr[-2000:]
-        err = p.stderr.strip().splitlines()[-1]
-        assert err.startswith("error: ") and str(out) in err and "no space left on device" in err
+        err = last_error(p)
+        assert str(out) in err and "no space left on device" in err
         assert "rerun" in err
         assert not complete(out)
         subprocess.run(["mount", "-o", "remount,size=200m", str(disk)], check=True)
@@ -184,7 +191,7 @@ def test_injected_disk_full_in_torch_save_is_one_line(seq, tmp_path):
     p = pavemap("run", seq, "--out", out, *FAST, env={"PYTHONPATH": f"{hook}{os.pathsep}{SRC}"})
     no_traceback(p)
     assert p.returncode == 2, p.stderr[-2000:]
-    err = p.stderr.strip().splitlines()[-1]
+    err = last_error(p)
     assert str(out) in err and "no space left on device" in err and "MB free" in err
     assert not complete(out)
     p = pavemap("run", seq, "--out", out, *FAST)
