@@ -197,6 +197,11 @@ def run(
     ``auto`` = ESPNet when its weights are found, into ``out_dir/semantics``); what was used is in
     ``RunResult.metrics["semantics"]``.
 
+    Before any stage every frame's files are decoded in full (a damaged frame is a SequenceError, or dropped with
+    a warning when ``config.skip_bad_frames``) and yolo weights checked; ``out_dir`` is locked for the run (a
+    second process stops with PavemapError naming this one); a write the disk refuses is one PavemapError naming
+    the folder (:mod:`pavemap.preflight`, docs/faults.md).
+
     >>> result = pavemap.run("my_seq", pavemap.load_config("nuscenes"), "runs/my_seq")  # doctest: +SKIP
     """
     from pavemap.config import preset_config, preset_for
