@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fuzz_support import CAM, H, W, check, invoke, looks_complete, make_seq
+from fuzz_support import CAM, H, W, check, invoke, make_seq
 from fuzz_support import pose as _pose
 
 

@@ -86,6 +86,8 @@ def acquire(folder: str | os.PathLike, option: str = "--out") -> None:
     if key in _HELD:
         _HELD[key][1] += 1
         return
+    if folder.exists() and not folder.is_dir():
+        raise PavemapError(f"{folder}: exists and is not a folder; choose another {option}")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd = _open_locked(folder / LOCK_FILE, option)
