@@ -25,7 +25,7 @@ from pathlib import Path
 
 from PIL import ImageFile
 
-from pavemap.errors import PavemapError, SequenceError
+from pavemap.errors import TORCH_WRITE_FAILED, PavemapError, SequenceError
 from pavemap.io.sequence import Problem, validate_sequence
 from pavemap.types import Sequence
 
@@ -37,8 +37,6 @@ CHUNK = 16
 WRITE_ERRNOS = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
                 errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
                 errno.EPERM: "operation not permitted"}
-#: What ``torch.save`` (its zip writer) says when a write falls short: on a full disk, mostly.
-TORCH_WRITE_FAILED = ("unexpected pos", "file write failed", "PytorchStreamWriter failed writing")
 
 
 def frame_problems(seq: Sequence, threads: int | None = None) -> list[Problem]:
