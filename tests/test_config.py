@@ -100,7 +100,7 @@ def test_every_field_is_typed_and_its_default_fits_its_type():
                 assert coerce(value, hint, f"{section}.{name}") == value
     hints = field_types(RunConfig)
     assert typing.get_origin(hints["preset"]) is Literal
-    assert {f.name for f in dataclasses.fields(RunConfig)} == {"preset", "device", *SECTIONS}
+    assert {f.name for f in dataclasses.fields(RunConfig)} == {"preset", "device", "skip_bad_frames", *SECTIONS}
 
 
 @pytest.mark.parametrize(("hint", "text", "value"), [

@@ -21,7 +21,7 @@ from typing import Any
 import typer
 from typer.core import TyperGroup
 
-from pavemap.errors import PavemapError, SequenceError
+from pavemap.errors import TORCH_WRITE_FAILED, PavemapError, SequenceError
 from pavemap.shutdown import prepare_quick_exit
 from pavemap.version import __version__
 
@@ -88,6 +88,11 @@ class _PavemapGroup(TyperGroup):
             _fail(str(e))
         except OSError as e:  # a missing file, a read-only folder, a full disk: the environment, not a bug
             _fail(os_error_text(e))
+        except RuntimeError as e:  # torch.save's words for a short write (a full disk): one line, no traceback
+            if not any(w in str(e) for w in TORCH_WRITE_FAILED):
+                raise
+            _fail(f"a write failed, no space left on device? ({str(e).splitlines()[0][:120]}); free some space, "
+                  "then rerun: a run resumes where it stopped")
         except MemoryError:
             _fail("out of memory; use smaller settings (e.g. mesh.render_scale, mesh.pixels_per_step, a coarser "
                   "mesh.resolution) or a machine with more memory")

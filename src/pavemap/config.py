@@ -1,10 +1,11 @@
 """Run configuration: presets carrying the paper's parameters, and one schema derived from the types.
 
 A config file is YAML with optional sections ``mesh``, ``detector``, ``filter``, ``fusion``,
-``maintenance``, ``output`` and top-level ``preset`` and ``device``::
+``maintenance``, ``output`` and top-level ``preset``, ``device`` and ``skip_bad_frames``::
 
     preset: nuscenes        # start from a preset, then override
     device: auto
+    skip_bad_frames: false  # true: frames with a damaged file are dropped with a warning (docs/faults.md)
     mesh:      {epochs: 2, resolution: 0.1}
     detector:  {backend: auto, seed: 0}
     filter:    {tau_conf: 0.05, tau_road: 0.5, mask: frame}
@@ -51,7 +52,7 @@ if TYPE_CHECKING:  # the stage configs import torch through their packages: load
 Preset = Literal["nuscenes", "kitti"]
 PRESETS: tuple[str, ...] = typing.get_args(Preset)
 SECTIONS: tuple[str, ...] = ("mesh", "detector", "filter", "fusion", "maintenance", "output")
-TOP_LEVEL: tuple[str, ...] = ("preset", "device")
+TOP_LEVEL: tuple[str, ...] = ("preset", "device", "skip_bad_frames")
 
 
 @dataclass
@@ -108,6 +109,7 @@ class RunConfig:
 
     preset: Preset = "nuscenes"
     device: str = "auto"
+    skip_bad_frames: bool = False  # drop frames whose files do not decode (else such a frame is an error)
     mesh: MeshConfig = field(default_factory=lambda: _section_for("mesh", "nuscenes"))
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     filter: FilterConfig = field(default_factory=lambda: FilterConfig.preset("nuscenes"))
@@ -148,9 +150,9 @@ def field_types(cls: type) -> dict[str, Any]:
 
 
 def field_names() -> list[str]:
-    """Every key ``--set`` accepts: ``preset``, ``device`` and ``section.field`` for each section field."""
+    """Every key ``--set`` accepts: ``device``, ``skip_bad_frames`` and ``section.field`` for each section field."""
     types_ = _section_types()
-    return ["device"] + [f"{s}.{f.name}" for s in SECTIONS for f in dataclasses.fields(types_[s])]
+    return ["device", "skip_bad_frames"] + [f"{s}.{f.name}" for s in SECTIONS for f in dataclasses.fields(types_[s])]
 
 
 # ---------------------------------------------------------------------------- values against type hints

@@ -21,4 +21,8 @@ class SequenceError(ValueError):
         super().__init__(f"{self.file}: {problem}")
 
 
-__all__ = ["PavemapError", "SequenceError"]
+#: What ``torch.save`` (its zip writer) raises, as a RuntimeError, when a write falls short: a full disk, mostly.
+TORCH_WRITE_FAILED = ("unexpected pos", "file write failed", "PytorchStreamWriter failed writing")
+
+
+__all__ = ["TORCH_WRITE_FAILED", "PavemapError", "SequenceError"]

@@ -100,7 +100,9 @@ class RunResult:
 
 
 def _setup_log(out: Path) -> logging.Handler:
-    handler = logging.FileHandler(out / "run.log", encoding="utf-8")
+    from pavemap.preflight import QuietFileHandler
+
+    handler = QuietFileHandler(out / "run.log", encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     log.addHandler(handler)
     log.setLevel(logging.INFO)
@@ -194,6 +196,11 @@ def run(
     ``auto`` = ESPNet when its weights are found, into ``out_dir/semantics``); what was used is in
     ``RunResult.metrics["semantics"]``.
 
+    Before any stage every frame's files are decoded in full (a damaged frame is a SequenceError, or dropped with
+    a warning when ``config.skip_bad_frames``) and yolo weights checked; ``out_dir`` is locked for the run (a
+    second process stops with PavemapError naming this one); a write the disk refuses is one PavemapError naming
+    the folder (:mod:`pavemap.preflight`, docs/faults.md).
+
     >>> result = pavemap.run("my_seq", pavemap.load_config("nuscenes"), "runs/my_seq")  # doctest: +SKIP
     """
     from pavemap.config import preset_config, preset_for
@@ -201,7 +208,7 @@ def run(
     from pavemap.device import resolve_device
 
     if not isinstance(seq, Sequence):
-        seq = read_sequence(seq)
+        seq = read_sequence(seq, validate=not (config is not None and config.skip_bad_frames))
     if config is None:
         name, why = preset_for(seq)
         cfg, preset_note = preset_config(name), f"{name} ({why})"
@@ -217,7 +224,26 @@ def run(
         from pavemap.detect.sources import load_detections
 
         load_detections(detector.file or seq.root / DETECTIONS_FILE, seq)  # type: ignore[operator]
+    from pavemap.io.lock import locked
+    from pavemap.io.owned import check_outside_inputs
+    from pavemap.preflight import check_frames, check_weights
+
+    check_weights(detector.weights if detector.backend == "yolo" else None)  # a truncated download: not after stage 1
+    seq = check_frames(seq, cfg.skip_bad_frames)  # every image decoded in full, as `pavemap info` does
     out = Path(out_dir) if out_dir is not None else Path("runs") / seq.name
+    check_outside_inputs(out, (seq.root, detector.file))  # before the lock creates the folder
+    with locked(out):  # a second process writing this folder stops here, naming this one
+        return _run_claimed(seq, cfg, detector, why, preset_note, device, out, overwrite, progress,
+                            segmenter, segmenter_weights)
+
+
+def _run_claimed(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, why: str, preset_note: str, device: str,
+                 out: Path, overwrite: bool, progress: bool, segmenter: str,
+                 segmenter_weights: str | os.PathLike | None) -> RunResult:
+    """:func:`run` in the locked folder ``out``: claim it, then the stages; on failure what this attempt
+    wrote is deleted (what a rerun resumes from is kept) and a refused write is worded as one line."""
+    from pavemap.preflight import write_failure
+
     folder = prepare_out(out, seq, overwrite, inputs=(detector.file,))
     handler, seen = _setup_log(out), _WarningList()
     log.addHandler(seen)
@@ -242,6 +268,9 @@ def run(
             log.error("failed (%s: %s); removed %d unfinished result file(s); rerun to resume",
                       type(e).__name__, e, len(gone))
             folder.record("failed")
+        worded = write_failure(e, out)
+        if worded is not None:
+            raise worded from None
         raise
     finally:
         for h in (handler, seen):

@@ -15,6 +15,7 @@ from pathlib import Path
 import typer
 
 from pavemap.commands.options import DEVICE_HELP
+from pavemap.errors import PavemapError
 from pavemap.types import Sequence
 
 imports_app = typer.Typer(name="import", help="Import real data (KITTI, nuScenes, own images or video).",
@@ -90,8 +91,10 @@ def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, seg
             typer.echo(f"segmenter not used: {e}; using the trajectory-corridor fallback")
             corridor_semantics(seq, camera_height=camera_height)
             return "corridor fallback"
-    if not spec.lower().endswith(".pt") and not Path(spec).is_file():
-        raise typer.BadParameter(f"--segmenter {spec!r}: choose auto, {', '.join(ARCHS)}, corridor, none or a .pt file")
+    if not Path(spec).is_file():
+        what = "no such file" if spec.lower().endswith(".pt") else "not a segmenter name and no such file"
+        raise PavemapError(f"--segmenter {spec}: {what}; choose auto, {', '.join(ARCHS)}, corridor, none, or the path "
+                           "of an ultralytics semantic-segmentation .pt file (see docs/segmenter.md)")
     from pavemap.segment.yolo_seg import UltralyticsSegmenter
 
     segment_sequence(seq, UltralyticsSegmenter(spec, class_map or "mapillary-vistas", device=device))

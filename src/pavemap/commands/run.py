@@ -36,15 +36,18 @@ def register(app: typer.Typer) -> None:
                                                       "file (default: looked up, see docs/segmenter.md)."),
         overwrite: bool = typer.Option(False, help="Replace a run folder that holds another pavemap run (deletes "
                                        "only the files pavemap wrote there)."),
+        skip_bad_frames: bool = typer.Option(False, "--skip-bad-frames", help="Drop frames whose image or layer "
+                                             "files are damaged (truncated, corrupt, missing) with a warning listing "
+                                             "them, instead of stopping (= --set skip_bad_frames=true)."),
     ) -> None:
         """Run stage 1 (mesh), detection, filtering, fusion and all outputs on a sequence."""
         from pavemap.io.sequence import read_sequence
         from pavemap.pipeline import run as run_pipeline
 
-        s = read_sequence(seq)
+        s = read_sequence(seq, validate=False)  # the run checks every file in full (damaged frames: see above)
         cfg = opt.resolve_config(s, config, sets, {**opt.detector_shortcuts(detector, weights, detections),
                                                 "device": device, "mesh.epochs": epochs,
-                                                "output.crs": crs})
+                                                "output.crs": crs, "skip_bad_frames": skip_bad_frames or None})
         opt.announce_detector(cfg, s)
         result = run_pipeline(s, cfg, out, overwrite=overwrite, segmenter=segmenter,
                               segmenter_weights=segmenter_weights)

@@ -11,7 +11,6 @@ Exterior rings are counter-clockwise and holes clockwise (RFC 7946 §3.1.6 right
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -275,12 +274,15 @@ def read_geojson(path: str | os.PathLike) -> DefectLayer:
     A lon/lat file without an origin gets one at its bounding-box centre (heading 90, x east).
     """
     p = Path(path)
+    from pavemap.errors import SequenceError
+    from pavemap.io.schema import load_json  # the one JSON reader of user files: duplicate keys refused
+
+    if not p.exists():
+        raise PavemapError(f"{p}: file not found")
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise PavemapError(f"{p}: file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise PavemapError(f"{p}: not readable JSON ({e})") from None
+        doc = load_json(p)
+    except SequenceError as e:
+        raise PavemapError(str(e)) from None
     if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection" or not isinstance(
             doc.get("features"), list):
         raise PavemapError(f"{p}: not a GeoJSON FeatureCollection")

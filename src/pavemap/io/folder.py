@@ -21,7 +21,6 @@ height above the road, and leaves what it measured in ``sfm.json``.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import shutil
 from dataclasses import dataclass
@@ -91,18 +90,27 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions w, x, y, z (normalised here) → (N, 3, 3) rotation matrices."""
+    """(N, 4) quaternions w, x, y, z (normalised here) → (N, 3, 3) rotation matrices (scipy's ``Rotation``)."""
+    from scipy.spatial.transform import Rotation
+
     q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
+    return Rotation.from_quat(q, scalar_first=True).as_matrix().reshape(-1, 3, 3)
+
+
+#: How far a quaternion's norm may be from 1: rounding to ~5 digits in a file, not a quaternion that is not one.
+QUAT_NORM_TOL = 1e-4
+
+
+def _quat_pose(v: np.ndarray, path: Path, line: int) -> np.ndarray:
+    """(4, 4) pose from ``tx ty tz qw qx qy qz`` (7,); a quaternion of norm other than 1 raises SequenceError."""
+    if not np.isfinite(v).all():
+        raise SequenceError(path, f"line {line}: the pose holds NaN or infinity ({', '.join(_QUAT)} = "
+                                  f"{', '.join(f'{x:g}' for x in v)})")
+    norm = float(np.linalg.norm(v[3:]))
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise SequenceError(path, f"line {line}: quaternion qw, qx, qy, qz has norm {norm:.6g}, expected 1 (within "
+                                  f"{QUAT_NORM_TOL:g}): not a rotation; write unit quaternions")
+    return make_pose(quat_to_rot(v[3:])[0], v[:3])
 
 
 # ----------------------------------------------------------------------------- cameras.json
@@ -110,13 +118,12 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
 
 def read_cameras_json(path: str | os.PathLike) -> dict[str, Camera]:
     """Parse ``cameras.json`` → {name: Camera}; problems raise SequenceError naming the file."""
+    from pavemap.io.schema import load_json  # the one JSON reader of user files: duplicate keys refused
+
     path = Path(path)
-    try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SequenceError(path, "cameras file not found") from None
-    except json.JSONDecodeError as e:
-        raise SequenceError(path, f"invalid JSON at line {e.lineno}: {e.msg}") from None
+    if not path.is_file():
+        raise SequenceError(path, "cameras file not found")
+    d = load_json(path)
     if isinstance(d, dict) and isinstance(d.get("cameras"), dict):
         d = d["cameras"]
     if not isinstance(d, dict) or not d:
@@ -180,10 +187,7 @@ def read_poses_csv(path: str | os.PathLike) -> list[PoseRow]:
         line = i + 2
         try:
             if kind == "quat":
-                v = np.array([float(r[c]) for c in _QUAT])
-                if not np.isfinite(v).all() or np.linalg.norm(v[3:]) < 1e-9:
-                    raise ValueError("non-finite values or zero quaternion")
-                T = make_pose(quat_to_rot(v[3:])[0], v[:3])
+                T = _quat_pose(np.array([float(r[c]) for c in _QUAT]), path, line)
             else:
                 names = _M16 if kind == "m16" else _M12
                 m = np.array([float(r[c]) for c in names]).reshape(-1, 4)
@@ -191,12 +195,14 @@ def read_poses_csv(path: str | os.PathLike) -> list[PoseRow]:
                 T[: m.shape[0]] = m
             frame = int(r["frame"]) if r.get("frame") not in (None, "") else i
             ts = float(r["timestamp"]) if r.get("timestamp") not in (None, "") else None
+        except SequenceError:
+            raise
         except (KeyError, ValueError) as e:
             raise SequenceError(path, f"line {line}: bad value ({e})") from None
-        why = check_pose(T, tol=1e-3)
+        why = check_pose(T, tol=QUAT_NORM_TOL)
         if why:
             raise SequenceError(path, f"line {line}: {why}")
-        # re-orthonormalise small rounding errors so the sequence validator accepts it
+        # re-orthonormalise rounding (within the tolerance) so the stored pose is a rotation to float precision
         U, _, Vt = np.linalg.svd(T[:3, :3])
         T[:3, :3] = U @ Vt
         out.append(PoseRow(frame, r.get("camera") or None, ts, r.get("image") or None, T))

@@ -40,7 +40,7 @@ from pavemap.geo.attach import GeoInput, attach_geo  # upward (io -> geo), allow
 from pavemap.io.atomic import atomic_path
 from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, list_images
 from pavemap.io.gps import A_KITTI_TO_WORLD
-from pavemap.io.sequence import SequenceError, check_intrinsics, save_depth, write_sequence
+from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, save_depth, write_sequence
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 #: Odometry sequence -> (raw drive, raw frame of odometry frame 0, raw frame of its last frame), the table of
@@ -123,7 +123,8 @@ def read_calib(path: str | os.PathLike) -> KittiCalib:
 
 
 def read_poses(path: str | os.PathLike) -> np.ndarray:
-    """KITTI ``poses.txt`` → (N, 4, 4) float64 cam0-to-world in KITTI's frame."""
+    """KITTI ``poses.txt`` → (N, 4, 4) float64 cam0-to-world in KITTI's frame. A row whose rotation is not
+    orthonormal within 1e-4 (file rounding), or that holds NaN / infinity, raises SequenceError naming the line."""
     path = Path(path)
     rows = []
     for ln, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
@@ -132,12 +133,16 @@ def read_poses(path: str | os.PathLike) -> np.ndarray:
         v = _numbers(raw, path, ln)
         if v.size != 12:
             raise SequenceError(path, f"line {ln}: {v.size} numbers, expected 12 (a 3x4 pose)")
-        rows.append(v.reshape(3, 4))
+        T = np.eye(4)
+        T[:3] = v.reshape(3, 4)
+        # rounding (~1e-6 in KITTI's files) is cleaned later (kitti_to_world); a scaled or NaN row is an error
+        why = check_pose(T)
+        if why:
+            raise SequenceError(path, f"line {ln}: {why}")
+        rows.append(T)
     if not rows:
         raise SequenceError(path, "no poses")
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :] = np.stack(rows)
-    return T
+    return np.stack(rows)
 
 
 def kitti_to_world(T_kitti_cam0: np.ndarray, t_cam: np.ndarray) -> np.ndarray:

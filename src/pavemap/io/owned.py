@@ -27,6 +27,7 @@ from pathlib import Path
 
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_write_json
+from pavemap.io.lock import LOCK_FILE, locked
 
 MARKER = ".pavemap-owner.json"
 FORMAT = "pavemap-owner/1"
@@ -72,6 +73,8 @@ def _walk(folder: Path) -> dict[str, tuple[int, int]]:
     out: dict[str, tuple[int, int]] = {}
     for dirpath, dirnames, filenames in os.walk(folder):
         for name in filenames:
+            if name == LOCK_FILE:  # the lock of a process writing the folder: bookkeeping, not an output
+                continue
             p = Path(dirpath) / name
             try:
                 st = p.lstat()
@@ -159,7 +162,7 @@ def check_replaceable(out: str | os.PathLike, kind: str, overwrite: bool,
         return False
     if not out.is_dir() or out.is_symlink():
         raise PavemapError(f"{out}: exists and is not a folder; choose another --out")
-    if not any(out.iterdir()):
+    if not any(p.name != LOCK_FILE for p in out.iterdir()):
         return True
     owner = read_owner(out)
     if owner is None:
@@ -224,16 +227,19 @@ def writing(out: str | os.PathLike, kind: str, overwrite: bool = False,
             same: Callable[[dict], bool] | None = None, legacy: Callable[[Path], dict | None] | None = None,
             early: bool = True) -> Iterator[OutputFolder]:
     """Claim ``out`` (:func:`claim`) for the body of a ``with``; when the body fails, delete what it wrote
-    (a half-written folder must not look complete), then record the manifest either way."""
-    folder = claim(out, kind, overwrite, inputs, info, same, legacy, early)
-    try:
-        yield folder
-    except BaseException:
-        with contextlib.suppress(OSError):  # a read-only or full disk: the original error matters
-            folder.discard(lambda rel: False)
-            folder.record("failed")
-        raise
-    folder.record()
+    (a half-written folder must not look complete), then record the manifest either way. The folder is
+    locked for the body (:mod:`pavemap.io.lock`): a second process writing it stops with an error."""
+    check_outside_inputs(out, inputs)  # before the lock creates the folder
+    with locked(out):
+        folder = claim(out, kind, overwrite, inputs, info, same, legacy, early)
+        try:
+            yield folder
+        except BaseException:
+            with contextlib.suppress(OSError):  # a read-only or full disk: the original error matters
+                folder.discard(lambda rel: False)
+                folder.record("failed")
+            raise
+        folder.record()
 
 
 def claim(out: str | os.PathLike, kind: str, overwrite: bool, inputs: Iterable[str | os.PathLike | None] = (),
@@ -257,7 +263,7 @@ def claim(out: str | os.PathLike, kind: str, overwrite: bool, inputs: Iterable[s
         exists = out.exists()
         if exists and not out.is_dir():
             raise PavemapError(f"{out}: exists and is not a folder")
-        busy = exists and any(out.iterdir())
+        busy = exists and any(p.name != LOCK_FILE for p in out.iterdir())
     except OSError as e:
         raise PavemapError(f"{out}: cannot be read ({e.strerror or e})") from None
     owner = read_owner(out) if busy else None

@@ -337,6 +337,27 @@ DETECTION = Obj(required={"frame": Int(-(2**31), 2**31 - 1), "camera": Str(max_l
 # ---------------------------------------------------------------------------- parsing
 
 
+class DuplicateKeyError(ValueError):
+    """A JSON object holding the same key twice (``json`` would keep the last copy silently)."""
+
+    def __init__(self, key: str):
+        self.key = key
+        super().__init__(f"duplicate key {key!r}")
+
+
+def _unique_pairs(pairs: list[tuple[str, object]]) -> dict:
+    """``object_pairs_hook`` refusing a repeated key: a hand edit or a bad merge that repeats ``"frames"``
+    would otherwise drop the first copy without a word."""
+    d = dict(pairs)
+    if len(d) != len(pairs):
+        seen: set[str] = set()
+        for k, _ in pairs:
+            if k in seen:
+                raise DuplicateKeyError(k)
+            seen.add(k)
+    return d
+
+
 class _Brackets(dict):
     """str.translate table keeping only quotes and brackets."""
 
@@ -382,7 +403,8 @@ def _parse_int(s: str) -> int | float:
 
 
 def parse_json(text: str, file: str | os.PathLike, where: str = "") -> object:
-    """JSON text -> value. Invalid JSON and nesting deeper than MAX_DEPTH raise SequenceError.
+    """JSON text -> value. Invalid JSON, a key repeated in an object and nesting deeper than MAX_DEPTH raise
+    SequenceError.
 
     ``NaN`` / ``Infinity`` literals parse (as Python's json does) and are left to the schema, which
     names their path. ``where`` prefixes messages (``"line 3: "`` for a JSONL line).
@@ -391,7 +413,11 @@ def parse_json(text: str, file: str | os.PathLike, where: str = "") -> object:
     if depth > MAX_DEPTH:
         raise SequenceError(file, f"{where}JSON nested {depth} levels deep; at most {MAX_DEPTH} allowed")
     try:
-        return json.loads(text, parse_int=_parse_int)
+        return json.loads(text, parse_int=_parse_int, object_pairs_hook=_unique_pairs)
+    except DuplicateKeyError as e:
+        key = e.key if len(e.key) <= 40 else e.key[:40] + "…"
+        raise SequenceError(file, f"{where}duplicate key {json.dumps(key)}: a key may appear once per object "
+                                  "(a hand edit or a merge repeated it; only the last copy would be read)") from None
     except json.JSONDecodeError as e:
         pos = f"line {e.lineno}, column {e.colno}" if not where else f"column {e.colno}"
         raise SequenceError(file, f"{where}invalid JSON at {pos}: {e.msg}") from None
@@ -425,5 +451,5 @@ def issues_text(issues: list[Issue], shown: int = 3) -> str:
     return "; ".join(str(i) for i in issues[:shown]) + (f" (and {rest} more)" if rest > 0 else "")
 
 
-__all__ = ["DETECTION", "MAX_DEPTH", "SEQUENCE", "Issue", "check", "check_detection", "check_sequence",
-           "decode_utf8", "issues_text", "load_json", "nesting_depth", "parse_json"]
+__all__ = ["DETECTION", "MAX_DEPTH", "SEQUENCE", "DuplicateKeyError", "Issue", "check", "check_detection",
+           "check_sequence", "decode_utf8", "issues_text", "load_json", "nesting_depth", "parse_json"]

@@ -40,6 +40,7 @@ __all__ = ["SequenceError"]  # re-exported: its home is pavemap.errors
 class Problem:
     file: str
     message: str
+    frame: int | None = None  # the frame whose file it is (None: a file of the whole sequence)
 
     def __str__(self) -> str:
         return f"{self.file}: {self.message}"
@@ -71,8 +72,10 @@ def check_pose(T: np.ndarray, tol: float = 1e-4) -> str | None:
         return "pose contains NaN or infinity"
     R = T[:3, :3]
     err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > tol:
-        return f"pose rotation is not orthonormal (max |R R^T - I| = {err:.2e})"
+    if err > tol:  # the tolerance covers values rounded to a few digits in a file, not a scaled matrix
+        scale = np.sqrt(np.linalg.eigvalsh(R @ R.T).clip(0))
+        return (f"pose rotation is not orthonormal (max |R R^T - I| = {err:.2e}, allowed {tol:.0e}; its axes are "
+                f"scaled by {scale.min():.4g}..{scale.max():.4g}, a rotation's by 1)")
     det = np.linalg.det(R)
     if abs(det - 1.0) > tol:
         return f"pose rotation has det {det:.4f}, expected 1 (a reflection?)"
@@ -270,22 +273,23 @@ def _deep_problem(kind: str, im: Image.Image, class_ids: set[int]) -> str | None
 
 
 def validate_sequence(seq: Sequence, check_images: bool = True, max_problems: int = 50,
-                      deep: bool = False) -> list[Problem]:
+                      deep: bool = False, detections: bool = True) -> list[Problem]:
     """Check the files a sequence refers to. Returns problems (file, message); empty when valid.
 
     Always: files exist; with ``check_images``, each image's header (size, and the layer's mode:
-    semantics single-channel, depth 16-bit). With ``deep`` (``pavemap info``), also decode every
-    image in full and check values: semantic ids from the class table, depth in a plausible range.
+    semantics single-channel, depth 16-bit). With ``deep`` (``pavemap info``, the run's check up front), also
+    decode every image in full and check values: semantic ids from the class table, depth in a plausible range.
+    ``detections``: also read ``detections.jsonl``.
     """
     assert seq.root is not None
     problems: list[Problem] = []
     class_ids = {c.id for c in seq.classes}
 
-    def add(file: str | Path, msg: str) -> bool:
-        problems.append(Problem(str(file), msg))
-        return len(problems) >= max_problems
-
     for f in seq.frames:
+        def add(file: str | Path, msg: str, frame: int = f.index) -> bool:
+            problems.append(Problem(str(file), msg, frame))
+            return len(problems) >= max_problems
+
         for cam, v in f.views.items():
             c = seq.cameras[cam]
             for kind, rel in (("image", v.image), ("semantics", v.semantics), ("depth", v.depth)):
@@ -313,11 +317,11 @@ def validate_sequence(seq: Sequence, check_images: bool = True, max_problems: in
                 if why and add(p, why):
                     return problems
     det_file = seq.root / DETECTIONS_FILE
-    if det_file.is_file():
+    if detections and det_file.is_file():
         try:
             read_detections(det_file)
         except SequenceError as e:
-            add(e.file, e.problem)
+            problems.append(Problem(e.file, e.problem))
     return problems
 
 

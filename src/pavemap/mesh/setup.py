@@ -161,12 +161,17 @@ def view_paths(views: list[tuple[int, object]], traj_xy: np.ndarray, range_m: fl
 
 @torch.no_grad()
 def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist: float, seq_name: str,
-                   warn: Warn, batch: int = 262144, keep_hits: bool = False) -> tuple[PixelPool, list | None]:
+                   warn: Warn, batch: int = 262144, keep_hits: bool = False,
+                   use_sem: bool = False) -> tuple[PixelPool, list | None]:
     """The pool without the pixels whose rays cannot meet the initial mesh (sky, far off the crop): they
     would fill batches with misses. Warns about views that see none of it; an error when no pixel is left.
     With ``keep_hits`` also the march itself (:func:`pavemap.mesh.bake.march_pool` of the returned pool on
     the initial surface from ``pool.T``), for a bake on that surface (11 s of a nuScenes-like drive's
-    149 s 1-epoch stage 1 was the initial bake's repeat of this march); else None."""
+    149 s 1-epoch stage 1 was the initial bake's repeat of this march); else None. ``use_sem``: the pool's
+    road flags come from semantic maps, so a pool without a road pixel says that the maps label none."""
+    no_road = use_sem and not bool(pool.road.any())
+    labels = ("the semantic maps label no pixel as road (no pixel holds the id of a class with road: true in "
+              "sequence.json's classes; wrong label maps or class table?)")
     hf0 = model.field(model.dense_heights(fill))
     keep = torch.zeros(len(pool), dtype=torch.bool, device=pool.view.device)
     hits = [] if keep_hits else None
@@ -185,7 +190,10 @@ def visible_pixels(model: RoadMeshModel, pool: PixelPool, fill: float, max_dist:
              "trajectory's ends")
     pool = pool.subset(keep)
     if len(pool) == 0:
-        raise PavemapError(f"sequence {seq_name!r}: no training view sees the road area around the trajectory")
+        raise PavemapError(f"sequence {seq_name!r}: no training view sees the road area around the trajectory"
+                           + (f"; {labels}" if no_road else ""))
+    if use_sem and not bool(pool.road.any()):
+        warn(labels if no_road else "no pixel of a road class is visible on the mesh area")
     if hits:  # their rows in the pool without the misses
         at = torch.cumsum(keep, 0) - 1
         hits = [h._replace(rows=at[h.rows]) for h in hits]

@@ -289,9 +289,7 @@ def _make_fit(run: _Run, cfg: MeshConfig, z_vertices: np.ndarray, seq_name: str,
     # the initial bake sees what this march saw unless poses or the pool change in between
     reuse = cfg.bake_init and poses is None and cfg.moving_cutoff <= 0
     data.pool, run.init_hits = visible_pixels(model, data.pool, run.fill, cfg.max_dist, seq_name, warn,
-                                              keep_hits=reuse)
-    if data.use_sem and int(data.pool.road.sum()) == 0:
-        warn("no pixel of a road class is visible on the mesh area")
+                                              keep_hits=reuse, use_sem=data.use_sem)
     depth_on = data.use_depth and data.pool.depth is not None and cfg.w_depth > 0
     return Fit(cfg, model, opt, params, poses, data.pool, data.use_sem, depth_on)
 

@@ -308,6 +308,25 @@ def run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, schedule
               workers: int | None = None, memory_limit: str = "auto", retries: int = DEFAULT_RETRIES,
               register: bool = True, task_fn: Callable[[dict], dict] = run_drive,
               echo: Echo = print, threads: int = 1, worker_start: str = "forkserver") -> dict:
+    """:func:`_run_batch` with the network folder locked (:mod:`pavemap.io.lock`): a second ``pavemap batch``
+    into the same folder stops with an error naming this process."""
+    from pavemap.io.lock import locked
+    from pavemap.io.owned import check_outside_inputs
+    from pavemap.network.workers import check_scheduler
+
+    net = Path(out).resolve()
+    check_outside_inputs(net, [d.path for d in load_manifest(manifest_path).drives])  # before the lock's mkdir
+    if scheduler not in (None, "serial"):
+        check_scheduler(scheduler)  # nothing listening: said at once, not after dask's 20 s timeout
+    with locked(net):
+        return _run_batch(manifest_path, out, scheduler, workers, memory_limit, retries, register, task_fn, echo,
+                          threads, worker_start)
+
+
+def _run_batch(manifest_path: str | os.PathLike, out: str | os.PathLike, scheduler: str | None = None,
+               workers: int | None = None, memory_limit: str = "auto", retries: int = DEFAULT_RETRIES,
+               register: bool = True, task_fn: Callable[[dict], dict] = run_drive,
+               echo: Echo = print, threads: int = 1, worker_start: str = "forkserver") -> dict:
     """Run every drive of the manifest into ``out/drives/<name>``, then build the register and the page.
 
     ``scheduler``: None for a LocalCluster of ``workers`` processes (default: the cores), ``"serial"``

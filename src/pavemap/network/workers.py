@@ -94,3 +94,34 @@ def resolve_worker_start(method: str) -> str:
 def worker_environ() -> dict[str, str]:
     """The client's variables that a forked worker gets as it starts (a spawned one inherits them all)."""
     return {k: v for k, v in os.environ.items() if k.startswith(FORWARDED_PREFIXES)}
+
+
+def check_scheduler(address: str, timeout: float = 5.0) -> None:
+    """PavemapError when nothing accepts a TCP connection at the dask scheduler ``address`` (``tcp://HOST:PORT``):
+    connection refused, an unknown host, or no answer within ``timeout`` seconds."""
+    import socket
+    from urllib.parse import urlsplit
+
+    from pavemap.errors import PavemapError
+
+    hint = "start one with `dask scheduler` and workers with `dask worker tcp://HOST:8786`"
+    try:
+        u = urlsplit(address if "://" in address else f"tcp://{address}")
+        host, port = u.hostname, u.port or 8786
+    except ValueError as e:
+        raise PavemapError(f"--scheduler {address}: not an address tcp://HOST:PORT ({e})") from None
+    if u.scheme not in ("tcp", "tls") or not host:
+        return  # another transport (ucx, inproc …): left to dask
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except ConnectionRefusedError:
+        raise PavemapError(f"--scheduler {address}: connection refused (nothing listens at {host}:{port}); "
+                           f"{hint}") from None
+    except socket.gaierror as e:
+        raise PavemapError(f"--scheduler {address}: unknown host {host!r} ({e.strerror or e})") from None
+    except TimeoutError:
+        raise PavemapError(f"--scheduler {address}: no answer from {host}:{port} within {timeout:g} s (a "
+                           f"firewall, or the wrong host?); {hint}") from None
+    except OSError as e:
+        raise PavemapError(f"--scheduler {address}: cannot connect to {host}:{port} ({e.strerror or e}); "
+                           f"{hint}") from None
