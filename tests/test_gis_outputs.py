@@ -31,6 +31,7 @@ from pavemap.export.report import build_report_html
 from pavemap.export.sample import sample_inputs
 from pavemap.geo.crs import utm_epsg
 from pavemap.pipeline import RunResult
+from qgis_support import SURVEY, check_styles
 
 OGRINFO = shutil.which("ogrinfo")
 GDALINFO = shutil.which("gdalinfo")
@@ -95,6 +96,8 @@ def test_georeferenced_gpkg_layers(geo_run, tiny_seq):
         pyogrio.read_info(gpkg, layer="segments")["fields"])
     o = tiny_seq.geo_origin
     epsg = utm_epsg(o.lon, o.lat)
+    assert layers.pop("layer_styles") is None  # the QGIS styles: a table without geometry or CRS
+    check_styles(gpkg, SURVEY)  # one default style per user-facing layer, in the report's colours
     for layer in layers:
         assert _crs(gpkg, layer).to_epsg() == epsg, layer
     _, _, geoms, _ = pyogrio.raw.read(gpkg, layer="defects")
@@ -176,7 +179,7 @@ def assert_no_wgs84_layer(folder) -> list[str]:
     assert not list(folder.rglob("*.geojson")) and not list(folder.rglob("*.km[lz]"))
     checked = []
     for path in sorted([*folder.rglob("*.gpkg"), *folder.rglob("*.fgb")]):
-        for layer in [n for n, _ in pyogrio.list_layers(path)] if path.suffix == ".gpkg" else [None]:
+        for layer in [n for n, k in pyogrio.list_layers(path) if k is not None] if path.suffix == ".gpkg" else [None]:
             crs = _crs(path, layer)
             assert crs is not None and not crs.is_geographic and crs.to_epsg() != 4326, (path, layer)
             assert "pavemap local world frame" in crs.to_wkt(), (path, layer)

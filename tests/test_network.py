@@ -31,6 +31,7 @@ from pavemap.network.folder import read_network
 from pavemap.network.manifest import load_manifest
 from pavemap.network.register import build_register, read_register
 from pavemap.network.workers import forkserver_available
+from qgis_support import REGISTER, check_styles
 
 # A light mesh is enough: with footprint association the defect areas follow the boxes, whose size follows
 # the defect; half-resolution images keep that measurement within ~1.2x between drives (quarter: ~2.5x).
@@ -194,7 +195,8 @@ def test_register_and_drive_layers_carry_the_defect_schema(serial):
         assert list(pyogrio.read_info(net / "drives" / name / "survey.gpkg", layer="defects")["fields"]) == schema
     fields = list(pyogrio.read_info(net / "register.gpkg", layer="observations")["fields"])
     assert [f for f in fields if f in schema] == schema[1:] and {"instance_id", "drive", "date"} <= set(fields)
-    for layer, _ in pyogrio.list_layers(net / "register.gpkg"):
+    check_styles(net / "register.gpkg", REGISTER)  # QGIS styles: defects by status, observations by urgency
+    for layer in [n for n, k in pyogrio.list_layers(net / "register.gpkg") if k is not None]:
         epsg = CRS.from_user_input(pyogrio.read_info(net / "register.gpkg", layer=layer)["crs"]).to_epsg()
         assert epsg is not None and epsg // 100 in (326, 327), (layer, epsg)  # WGS 84 / UTM north or south
 

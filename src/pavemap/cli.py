@@ -131,7 +131,7 @@ def _root(
 
 
 COMMAND_MODULES = ("info", "synth", "detect", "reconstruct", "fuse", "imports", "train", "run", "compare", "config",
-                   "batch", "register")
+                   "batch", "register", "weights")
 
 for _name in COMMAND_MODULES:
     _mod = f"pavemap.commands.{_name}"

@@ -1,4 +1,8 @@
-"""Colours shared by every picture pavemap draws, and pavemap's own semantic class table."""
+"""Colours shared by every picture pavemap draws, and pavemap's own semantic class table.
+
+The one home of the map colours the HTML report, the network page and the QGIS layer styles
+(:mod:`pavemap.export.qgis_style`) share: defect classes, urgency, register status, condition index bands.
+"""
 
 from __future__ import annotations
 
@@ -25,6 +29,27 @@ DEFECT_HEX: dict[str, str] = {"D00": "#2ca02c", "D10": "#f5d300", "D20": "#ff7f0
 DEFECT_RGB: dict[int, tuple[int, int, int]] = {
     i: tuple(int(h[k : k + 2], 16) for k in (1, 3, 5)) for i, h in enumerate(DEFECT_HEX.values())
 }
+
+#: Urgency (the ``priority`` field, :data:`pavemap.maintain.policy.PRIORITIES`) as the report's map draws it;
+#: "inspect" / "no action" are the labels of runs before issue 16.
+PRIORITY_HEX: dict[str, str] = {"repair now": "#c0392b", "schedule": "#e67e22", "inspect": "#e67e22",
+                                "monitor": "#f1c40f", "no action": "#95a5a6", "unassessed": "#95a5a6"}
+#: A register defect's status (network page and register.gpkg).
+STATUS_HEX: dict[str, str] = {"new": "#d62728", "grown": "#ff7f0e", "unchanged": "#1f77b4",
+                              "not seen again": "#9467bd"}
+#: PCI-like condition index 0-100 in the usual PCI rating bands: (upper bound, colour), red failed .. green good.
+CONDITION_BANDS: tuple[tuple[float, str], ...] = ((25, "#8e1b10"), (40, "#c0392b"), (55, "#e67e22"),
+                                                  (70, "#f1c40f"), (85, "#9ccc65"), (float("inf"), "#2e7d32"))
+#: A segment without an index ("not assessed": not seen well enough), never green.
+NOT_ASSESSED_HEX = "#9e9e9e"
+#: The drive's trajectory line in the GIS styles (the report's accent blue).
+TRAJECTORY_HEX = "#1565c0"
+
+
+def index_colour(v: float) -> str:
+    """PCI-like index 0-100 -> the colour of its band in :data:`CONDITION_BANDS`."""
+    return next(col for lim, col in CONDITION_BANDS if v < lim)
+
 
 # Cityscapes-like colours for common class names; other names get a stable hashed colour.
 _NAMED: dict[str, tuple[int, int, int]] = {

@@ -13,19 +13,17 @@ from pathlib import Path
 from pavemap.detect.config import DetectorConfig
 from pavemap.errors import PavemapError
 from pavemap.types import Sequence
-from pavemap.user_cache import weight_dirs
+from pavemap.weights.registry import SHIPPED_WEIGHTS, candidates, known
 
-#: the default detector's file name; it ships inside the package (``pavemap/weights/``, card beside it)
-SHIPPED_WEIGHTS = "pavemap-yolov5n-rdd2022.pt"
 TRUTH_DEFECTS = "truth/defects.geojson"
 
 
 def weights_candidates() -> list[Path]:
-    """Where the shipped weights are looked for: inside the installed package, then the user's weight folders."""
-    from importlib.resources import files
-
-    packaged = Path(str(files("pavemap") / "weights" / SHIPPED_WEIGHTS))
-    return [packaged, *(d / SHIPPED_WEIGHTS for d in weight_dirs())]
+    """Where the shipped weights are looked for: inside the installed package, then the user's weight folders
+    (:func:`pavemap.weights.registry.candidates`)."""
+    entry = known(SHIPPED_WEIGHTS)
+    assert entry is not None
+    return [p for _, p in candidates(entry)]
 
 
 def shipped_weights() -> Path:
@@ -36,7 +34,8 @@ def shipped_weights() -> Path:
             return p
     raise PavemapError(
         f"{SHIPPED_WEIGHTS}: the shipped YOLO weights are missing (looked in {', '.join(str(p) for p in cands)}); "
-        "put a YOLO detection .pt there, pass --weights PATH.pt, or train one with `pavemap train-detector`"
+        "reinstall pavemap, `pavemap weights install FILE.pt`, pass --weights PATH.pt, or train one with "
+        "`pavemap train-detector`"
     )
 
 

@@ -62,8 +62,8 @@ class _StandIn:
             self.__dict__.update(state)
 
 
-def _find_class(module: str, name: str) -> Any:
-    if module.startswith(_FOREIGN_PREFIXES) or module.startswith("torch.nn.modules") or module.startswith("numpy"):
+def _find_class(module: str, name: str, foreign: tuple[str, ...] = _FOREIGN_PREFIXES) -> Any:
+    if module.startswith(foreign) or module.startswith("torch.nn.modules") or module.startswith("numpy"):
         return _StandIn
     if (module, name) in _ALLOWED:
         module = "builtins" if module == "__builtin__" else module
@@ -71,20 +71,35 @@ def _find_class(module: str, name: str) -> Any:
     raise pickle.UnpicklingError(f"class {module}.{name} is not allowed in a pretrained checkpoint")
 
 
-class _Unpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str) -> Any:
-        return _find_class(module, name)
+def _pickle_module(foreign: tuple[str, ...]) -> Any:
+    """What ``torch.load(pickle_module=...)`` needs: an Unpickler whose classes come from :func:`_find_class`
+    (``foreign`` prefixes become :class:`_StandIn`) and a ``load``."""
+
+    class _Unpickler(pickle.Unpickler):
+        def find_class(self, module: str, name: str) -> Any:
+            return _find_class(module, name, foreign)
+
+    class _PickleModule:
+        Unpickler = _Unpickler
+        __name__ = "pavemap_standin_pickle"
+
+        @staticmethod
+        def load(f: Any, **kwargs: Any) -> Any:
+            return _Unpickler(f, **kwargs).load()
+
+    return _PickleModule
 
 
-class _PickleModule:
-    """What ``torch.load(pickle_module=...)`` needs: an Unpickler and the protocol constants."""
+def inert_load(path: str | os.PathLike, foreign: tuple[str, ...] = _FOREIGN_PREFIXES) -> Any:
+    """A foreign checkpoint unpickled without running its code: tensors for real, classes named under a
+    ``foreign`` prefix (and torch.nn / numpy ones) as inert :class:`_StandIn` objects, anything else refused
+    (``pickle.UnpicklingError``).
 
-    Unpickler = _Unpickler
-    __name__ = "pavemap_standin_pickle"
-
-    @staticmethod
-    def load(f: Any, **kwargs: Any) -> Any:
-        return _Unpickler(f, **kwargs).load()
+    ``weights_only=False`` is deliberate and safe here: a YOLOv5 / ultralytics pickle holds whole model
+    objects, which torch's weights_only loader refuses; the allow-list unpickler above stands in for it
+    (it resolves no class outside :data:`_ALLOWED`, so e.g. ``os.system`` in a ``__reduce__`` never runs).
+    """
+    return torch.load(Path(path), map_location="cpu", pickle_module=_pickle_module(foreign), weights_only=False)
 
 
 def _collect(obj: Any, prefix: str, out: dict[str, torch.Tensor]) -> None:
@@ -109,7 +124,7 @@ def read_yolov5_state(path: str | os.PathLike) -> dict[str, torch.Tensor]:
             f"pretrained checkpoint {p} not found (put ultralytics' COCO yolov5n.pt there; pavemap never downloads)"
         )
     try:
-        ckpt = torch.load(p, map_location="cpu", pickle_module=_PickleModule, weights_only=False)
+        ckpt = inert_load(p)
     except Exception as e:  # a truncated file or a foreign pickle: one line naming the file
         raise PavemapError(f"{p}: not a readable YOLOv5 checkpoint ({type(e).__name__}: {e})") from None
     model = ckpt.get("ema") or ckpt.get("model") if isinstance(ckpt, dict) else None

@@ -12,7 +12,9 @@
   georeferencing residual; its geometry is the surveyed area (:mod:`pavemap.geo.coverage`);
 - ``baseline_defects``: the single-frame baseline (every mapped detection alone; for evaluation);
 - ``segments``: the road segments of chainage with their PCI-like condition index
-  (:data:`pavemap.maintain.segments.SEGMENT_SCHEMA`), when the run was assessed.
+  (:data:`pavemap.maintain.segments.SEGMENT_SCHEMA`), when the run was assessed;
+- ``layer_styles``: the QGIS styles of these layers (:mod:`pavemap.export.qgis_style`): the file opens in
+  QGIS with defects coloured by urgency and labelled with their code, segments by condition index.
 
 CRS: with a geo origin the drive's UTM zone (or ``--crs``); without one the local engineering CRS
 of :func:`pavemap.geo.crs.local_crs`, so no layer of a run without a geo origin reads as EPSG:4326.
@@ -36,6 +38,7 @@ from shapely.geometry import MultiPolygon, Point
 from pavemap.errors import PavemapError
 from pavemap.export.geojson import PROPERTY_SCHEMA, DefectLayer, _polygons, instance_properties
 from pavemap.export.kml import write_kml
+from pavemap.export.qgis_style import survey_styles, write_layer_styles
 from pavemap.geo.crs import crs_label, local_crs, output_crs
 from pavemap.geo.tangent import WGS84, _apply, local_tangent, origin_from_dict
 from pavemap.io.atomic import atomic_path
@@ -225,6 +228,7 @@ def write_gis(out_dir: str | os.PathLike, instances: list[DefectInstance], *, ba
             _write_layer(tmp, "GPKG", "segments", [None if (m := _multi(g.polygon)) is None else proj.geometry(m)
                                                    for g in segments], [g.record() for g in segments], target,
                          "MultiPolygon", [(n, t) for n, t, *_ in SEGMENT_SCHEMA])
+        write_layer_styles(tmp, survey_styles())  # into the temporary file: it appears styled, at once
     paths[SURVEY_GPKG] = out / SURVEY_GPKG
     if "fgb" in formats:
         with atomic_path(out / DEFECTS_FGB) as tmp:

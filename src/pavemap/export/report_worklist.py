@@ -11,11 +11,11 @@ from __future__ import annotations
 import html
 
 from pavemap.export.figures import CLASS_COLOURS
+from pavemap.palette import NOT_ASSESSED_HEX, PRIORITY_HEX, index_colour
 
 # urgency labels, issue 16 (repair now / schedule / monitor) and the earlier ones (inspect / no action)
 PRIORITY_ORDER = {"repair now": 0, "schedule": 1, "inspect": 1, "monitor": 2, "no action": 3, "unassessed": 4}
-PRIORITY_FILL = {"repair now": "#c0392b", "schedule": "#e67e22", "inspect": "#e67e22", "monitor": "#f1c40f",
-                 "no action": "#95a5a6", "unassessed": "#95a5a6"}
+PRIORITY_FILL = PRIORITY_HEX  # one home: pavemap.palette (the QGIS styles use the same)
 SEVERITY_ORDER = {"high": 0, "medium": 1, "low": 2}
 
 
@@ -146,7 +146,7 @@ def _field(seg: object, *names: str) -> object:
 
 
 #: Fill of a segment without an index ("not assessed": the survey could not see it well enough), never green.
-NOT_ASSESSED_FILL = "#9e9e9e"
+NOT_ASSESSED_FILL = NOT_ASSESSED_HEX
 
 
 def _not_assessed(seg: object) -> bool:
@@ -182,14 +182,6 @@ def detector_banner(metrics: dict | None) -> str:
     return ('<div id="detector-warning" role="alert" style="border:2px solid #8a6d00;background:#fffbe6;'
             f'padding:8px 12px;margin:0 0 12px"><b style="color:#8a6d00">Detector nearly blind on this footage</b>'
             f'<p>{_esc(chk.get("message", ""))}</p></div>')
-
-
-def index_colour(v: float) -> str:
-    """PCI-like index 0-100 -> colour (red failed … green good), the usual PCI rating bands."""
-    for lim, col in ((25, "#8e1b10"), (40, "#c0392b"), (55, "#e67e22"), (70, "#f1c40f"), (85, "#9ccc65")):
-        if v < lim:
-            return col
-    return "#2e7d32"
 
 
 def segment_strip(segments: list | None) -> str:

@@ -9,7 +9,9 @@ the earliest drive's geo origin (WGS84 / UTM, metres), so areas and distances re
 - ``defects``: the physical defects: class, first and last survey it was seen in, sightings, the drives,
   area and depth in its previous and its last survey, their change, and ``status``;
 - ``drives``: one line per drive (its trajectory) with date, vehicle, defects and georeferencing residual;
-- ``segments``: the drives' condition segments, when their runs wrote them (issue 16).
+- ``segments``: the drives' condition segments, when their runs wrote them (issue 16);
+- ``layer_styles``: QGIS styles (:mod:`pavemap.export.qgis_style`): defects by status, observations by
+  urgency (both labelled with the class code), drives as lines, segments by condition index.
 
 Merging: drives are taken in date order (then name); each drive's instances are matched one-to-one to
 the register's defects (their latest sighting) by :func:`pavemap.compare.match_defects` with
@@ -322,6 +324,7 @@ def write_register(path: Path, crs: CRS, observations: tuple[list, list[dict]], 
     import pyogrio.raw
 
     from pavemap.export.gis import _GPKG_OPTIONS, _multi, _write_layer
+    from pavemap.export.qgis_style import register_styles, write_layer_styles
 
     with atomic_path(path) as tmp:
         _write_layer(tmp, "GPKG", "defects", [_multi(g) for g in defects[0]], defects[1], crs, "MultiPolygon",
@@ -336,6 +339,7 @@ def write_register(path: Path, crs: CRS, observations: tuple[list, list[dict]], 
             gtype = "Unknown" if len(kinds) != 1 else shapely.from_wkb(wkb[[w is not None for w in wkb]][0]).geom_type
             pyogrio.raw.write(tmp, wkb, data, names, layer="segments", driver="GPKG", geometry_type=gtype,
                               crs=crs.to_wkt())
+        write_layer_styles(tmp, register_styles())
     return path
 
 

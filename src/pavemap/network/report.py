@@ -16,9 +16,10 @@ import numpy as np
 import shapely
 
 from pavemap.io.atomic import atomic_write_text
+from pavemap.palette import STATUS_HEX
 
 PAGE = "network.html"
-STATUS_COLOURS = {"new": "#d62728", "grown": "#ff7f0e", "unchanged": "#1f77b4", "not seen again": "#9467bd"}
+STATUS_COLOURS = STATUS_HEX
 #: Fields a segments layer may carry its condition in (0-100, higher is better), first found wins.
 CONDITION_FIELDS = ("pci", "condition_index", "condition", "index", "score")
 #: Colour of a segment without an index (issue 41: not assessed is not perfect).

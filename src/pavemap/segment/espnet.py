@@ -8,9 +8,9 @@
 Cityscapes has no bonnet class and the model calls it road).
 
 Where the weights are looked for, first hit wins: ``--segmenter-weights PATH``;
-``$PAVEMAP_WEIGHTS/<file>``; ``~/.cache/pavemap/weights/<file>`` (``$XDG_CACHE_HOME``
-respected); a ``shared/data/pretrained/<folder>/<file>`` beside the source checkout (the
-project's development machines). See docs/segmenter.md.
+``$PAVEMAP_WEIGHTS/<file>``; the user's weight folders (:func:`pavemap.user_cache.weight_dirs`, where
+``pavemap weights install`` puts a file); a ``shared/data/pretrained/<folder>/<file>`` beside the source
+checkout (the project's development machines). See docs/segmenter.md and docs/weights.md.
 """
 
 from __future__ import annotations
@@ -101,9 +101,11 @@ def find_weights(arch: str, weights: str | os.PathLike | None = None) -> Path:
         for p in (d / a.file, d / a.folder / a.file):
             if p.is_file():
                 return p
+    from pavemap.user_cache import install_dir
+
     raise PavemapError(
-        f"{a.file}: {a.name} segmenter weights not found; put the file in {dirs[1 if len(dirs) > 2 else 0]} "
-        f"(or a folder named by $PAVEMAP_WEIGHTS) or give --segmenter-weights PATH; looked in: "
+        f"{a.file}: {a.name} segmenter weights not found; put the file in {install_dir()} "
+        f"(`pavemap weights install FILE`) or give --segmenter-weights PATH; looked in: "
         + ", ".join(str(d) for d in dirs)
     )
 
