@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.pavemap-installed
 EXTRAS ?= yolo,nuscenes,sfm,dev
 
-.PHONY: demo test install lint bench clean
+.PHONY: demo test install lint bench clean docs
 
 install: $(STAMP)
 
@@ -23,6 +23,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests
+
+# regenerate the reference and benchmark pages, then build the site strictly into site/ (git-ignored)
+docs: $(STAMP)
+	$(PY) scripts/gen_docs.py
+	$(VENV)/bin/mkdocs build --strict
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests bench
