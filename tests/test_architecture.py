@@ -24,7 +24,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 LAYERS: tuple[tuple[str, ...], ...] = (
     # 0 ground: plain data types, errors, colours, the version, the device and cache helpers
     ("pavemap.types", "pavemap.errors", "pavemap.palette", "pavemap.version", "pavemap.device",
-     "pavemap.shutdown", "pavemap.user_cache", "pavemap.assets"),
+     "pavemap.shutdown", "pavemap.user_cache", "pavemap.assets", "pavemap.weights"),
     ("pavemap.geometry",),  # 1 cameras, rays, grids, height fields, patch matching: numbers in, numbers out
     ("pavemap.io",),  # 2 the sequence folder and the files pavemap reads and writes; the importers of real data
     ("pavemap.geo",),  # 3 georeferencing: GPS fits, local tangent plane, CRS, coverage
@@ -36,7 +36,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("pavemap.maintain",),  # 9 measures and repair priorities of fused defects
     ("pavemap.export",),  # 10 GeoJSON, GeoTIFF, GIS, CSV, the HTML report
     ("pavemap.evaluate", "pavemap.synth"),  # 11 scoring against truth; the synthetic world (writes truth files)
-    ("pavemap.config", "pavemap.run_folder", "pavemap.compare"),  # 12 run config, run folder, survey change
+    # 12 run config, run folder, survey change, the checks before a run's first long stage
+    ("pavemap.config", "pavemap.run_folder", "pavemap.compare", "pavemap.preflight"),
     ("pavemap.pipeline",),  # 13 one sequence end to end
     ("pavemap.network",),  # 14 many drives: batch, register, network report
     ("pavemap.commands", "pavemap.cli", "pavemap"),  # 15 the CLI and the package's lazy face

@@ -35,9 +35,7 @@ from pavemap.io.atomic import atomic_path
 from pavemap.io.egomask import resolve_ego_mask, store_ego_masks
 from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, write_sequence
 from pavemap.palette import PAVEMAP_CLASSES
-from pavemap.sfm.pipeline import sfm_poses  # pycolmap is imported by sfm_poses, when it runs
-from pavemap.sfm.report import write_sfm_report
-from pavemap.sfm.result import SfmRefusedError, SfmResult
+from pavemap.sfm.pipeline import report_result, sfm_poses_or_report  # pycolmap is imported when SfM runs
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -230,24 +228,6 @@ def _camera_images(images_dir: Path, cameras: dict[str, Camera]) -> dict[str, li
     return found
 
 
-def _sfm_or_diagnosis(out: Path, images: list[Path], cam: Camera, **kw: object) -> SfmResult:
-    """:func:`sfm_poses`, and on a refusal ``sfm.json`` / ``sfm.png`` in ``out`` before the one-line error
-    (what was registered, what was dropped and why), so a refused clip still leaves its diagnosis."""
-    try:
-        return sfm_poses(images, cam, **kw)
-    except SfmRefusedError as e:
-        Path(out).mkdir(parents=True, exist_ok=True)
-        files = write_sfm_report(e.info, out)
-        raise PavemapError(f"{e}. What SfM measured: {', '.join(str(f) for f in files)}") from None
-
-
-def _sfm_report(res: SfmResult | None, out: Path) -> None:
-    """The kept path's ``sfm.json`` / ``sfm.png`` (nothing when poses were given; the import command names them)."""
-    if res is None:
-        return
-    write_sfm_report(res.info, out, res.T_world_cam, res.registered, scale=res.scale)
-
-
 def import_folder(
     images_dir: str | os.PathLike, cameras_json: str | os.PathLike, poses: str | os.PathLike,
     out: str | os.PathLike, name: str | None = None, camera_height: float = 1.5,
@@ -276,7 +256,7 @@ def import_folder(
             raise PavemapError("--poses sfm supports one camera; give a poses.csv for a multi-camera rig")
         cam = next(iter(cameras.values()))
         ego, _ = resolve_ego_mask(ego_mask, per_cam[cam.name], cam.width, cam.height, default_auto=True)
-        res = sfm_res = _sfm_or_diagnosis(out, per_cam[cam.name], cam, camera_height=camera_height, ego_mask=ego,
+        res = sfm_res = sfm_poses_or_report(out, per_cam[cam.name], cam, camera_height=camera_height, ego_mask=ego,
                                           refine_intrinsics=refine_intrinsics,
                                           times=None if fps is None else np.arange(len(per_cam[cam.name])) / fps)
         if refine_intrinsics and res.K is not None:
@@ -337,7 +317,7 @@ def import_folder(
     for src, dst in tqdm(jobs, desc="copy images", unit="img", disable=None):
         copy_image(src, dst)
     store_ego_masks(cameras, egos, out)
-    _sfm_report(sfm_res, out)
+    report_result(sfm_res, out)
     write_sequence(seq, out)
     return seq
 
@@ -445,7 +425,7 @@ def import_video(
     ego = None
     if str(poses).lower() == "sfm":
         ego, _ = resolve_ego_mask(None, paths, cam.width, cam.height, default_auto=True)  # bonnet: kept out of SfM
-        res = _sfm_or_diagnosis(out, paths, cam, camera_height=camera_height, ego_mask=ego, times=times)
+        res = sfm_poses_or_report(out, paths, cam, camera_height=camera_height, ego_mask=ego, times=times)
         Ts = res.T_world_cam
         for i in np.nonzero(~res.registered)[0]:  # frames SfM could not register are dropped
             paths[i].unlink(missing_ok=True)
@@ -468,6 +448,6 @@ def import_video(
     seq = Sequence(name or video.stem, list(DEFAULT_CLASSES), {cam.name: cam}, frames)
     attach_geo(seq, geo, poses=poses, per_frame=False)
     store_ego_masks({cam.name: cam}, {cam.name: ego}, out)  # the bonnet found for SfM: masks/<camera>.png
-    _sfm_report(res if str(poses).lower() == "sfm" else None, out)
+    report_result(res if str(poses).lower() == "sfm" else None, out)
     write_sequence(seq, out)
     return seq

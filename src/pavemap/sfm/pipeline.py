@@ -41,49 +41,15 @@ from pavemap.geometry.road_height import camera_heights
 from pavemap.sfm.checks import SfmChecks, check_sfm, select_keyframes
 from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_flags
 from pavemap.sfm.planar import planar_result
+from pavemap.sfm.report import write_sfm_report
 from pavemap.sfm.result import SfmRefusedError, SfmResult
 from pavemap.sfm.scale import dense_rescale, road_relength
+from pavemap.sfm.sparse import fill_between_keyframes, heights_below_path, road_candidates
 from pavemap.types import Camera
 
 log = logging.getLogger(__name__)
 
 
-def _heights_below_path(X: np.ndarray, C: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Height of each camera path point above road points ``X`` (M, 3) it drives over.
-
-    For each point the camera centre nearest *in the ground plane* is found among all
-    frames (a later frame passes over what an earlier one saw ahead), so slopes along
-    the road do not bias the height. Returns heights (M,) in SfM units and the mask of
-    points within 1.5 typical heights, sideways, of the path (the road the car drove on).
-    """
-    from scipy.spatial import cKDTree
-
-    def flat(a: np.ndarray) -> np.ndarray:
-        return a - np.outer(a @ up, up)
-
-    dist, k = cKDTree(flat(C)).query(flat(X))
-    h = (C[k] - X) @ up
-    first = np.median(h[h > 0]) if (h > 0).any() else 0.0
-    return h, (h > 0) & (dist < 1.5 * first)
-
-
-def _road_candidates(P: np.ndarray, C: np.ndarray, R_wc: np.ndarray, K: np.ndarray, width: int, height: int,
-                     up: np.ndarray) -> np.ndarray:
-    """Mask of points ``P`` (M, 3) that look like road: below some camera and inside the lower-middle
-    of its image (a forward car camera sees the road there). Points x cameras in blocks of 64 cameras."""
-    hit = np.zeros(len(P), dtype=bool)
-    for s0 in range(0, len(C), 64):
-        Cb, Rb = C[s0 : s0 + 64], R_wc[s0 : s0 + 64]
-        rel = P[None] - Cb[:, None]  # (B, M, 3)
-        Xc = np.einsum("bji,bmj->bmi", Rb, rel)  # world -> camera: R^T (P - C)
-        z = Xc[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = K[0, 0] * Xc[..., 0] / z + K[0, 2]
-            v = K[1, 1] * Xc[..., 1] / z + K[1, 2]
-        ok = (z > 0) & ((rel @ up) < 0) & (v > K[1, 2] + 0.15 * height) & (v < height)
-        ok &= np.abs(u - K[0, 2]) < 0.3 * width
-        hit |= ok.any(0)
-    return hit
 
 
 def _colmap_model(pycolmap, work: Path, image_dir: Path, names: list[str], camera: Camera, mask: np.ndarray | None,
@@ -268,7 +234,7 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         _set_scale(res, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
                                        checks, hint, None if times is None else np.asarray(times)[res.registered])
-        _fill_between_keyframes(res, keyframes)
+        fill_between_keyframes(res, keyframes)
         res.info["status"] = "ok"
         log.info("SfM: %s", {k: v for k, v in res.info.items() if not k.startswith("_")})
         return res
@@ -403,8 +369,8 @@ def _metric_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera,
     T_wc = T_all[reg]
     C, R_wc = T_wc[:, :3, 3], T_wc[:, :3, :3]
     up = _up(T_wc)
-    cand = _road_candidates(P, C, R_wc, K, camera.width, camera.height, up)
-    heights, drive_over = _heights_below_path(P[cand], C, up)
+    cand = road_candidates(P, C, R_wc, K, camera.width, camera.height, up)
+    heights, drive_over = heights_below_path(P[cand], C, up)
     info.update(road_candidates=int(cand.sum()), road_points_under_path=int(drive_over.sum()))
     if drive_over.sum() >= 3 and np.median(heights[drive_over]) > 0 and not info.get("translations_rejected"):
         h_sfm = float(np.median(heights[drive_over]))
@@ -447,22 +413,18 @@ def _metric_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera,
     return SfmResult(out, registered, float(s), int(drive_over.sum()), pts, info, K)
 
 
-def _fill_between_keyframes(res: SfmResult, keyframes: np.ndarray) -> None:
-    """Poses of frames that were not keyframes (the car hardly moved), interpolated in place.
+def sfm_poses_or_report(out: Path, images: list[Path], camera: Camera, **kw: object) -> SfmResult:
+    """:func:`sfm_poses`; on a refusal ``sfm.json`` / ``sfm.png`` go into ``out`` before the one-line error (what
+    was registered, what was dropped and why), so a refused clip still leaves its diagnosis."""
+    try:
+        return sfm_poses(images, camera, **kw)
+    except SfmRefusedError as e:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        files = write_sfm_report(e.info, out)
+        raise PavemapError(f"{e}. What SfM measured: {', '.join(str(f) for f in files)}") from None
 
-    Position linearly and rotation by slerp between the registered keyframes either side (by frame
-    number); frames outside the registered span stay unregistered. ``info["interpolated"]`` counts them.
-    """
-    from scipy.spatial.transform import Rotation, Slerp
 
-    reg = np.flatnonzero(res.registered)
-    todo = [i for i in np.flatnonzero(~keyframes) if reg.size >= 2 and reg[0] < i < reg[-1]]
-    if todo:
-        T = res.T_world_cam[reg]
-        slerp = Slerp(reg.astype(float), Rotation.from_matrix(T[:, :3, :3]))
-        for i in todo:
-            res.T_world_cam[i] = np.eye(4)
-            res.T_world_cam[i, :3, :3] = slerp([float(i)]).as_matrix()[0]
-            res.T_world_cam[i, :3, 3] = [np.interp(i, reg, T[:, k, 3]) for k in range(3)]
-            res.registered[i] = True
-    res.info["interpolated"] = len(todo)
+def report_result(res: SfmResult | None, out: Path) -> None:
+    """The kept path's ``sfm.json`` / ``sfm.png`` (nothing when poses were given; the import command names them)."""
+    if res is not None:
+        write_sfm_report(res.info, out, res.T_world_cam, res.registered, scale=res.scale)
