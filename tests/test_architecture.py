@@ -40,7 +40,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("pavemap.config", "pavemap.run_folder", "pavemap.compare", "pavemap.preflight"),
     ("pavemap.pipeline",),  # 13 one sequence end to end
     ("pavemap.network",),  # 14 many drives: batch, register, network report
-    ("pavemap.commands", "pavemap.cli", "pavemap"),  # 15 the CLI and the package's lazy face
+    # 15 the CLI, the package's lazy face, and the weights command's checks (they load through detect / segment)
+    ("pavemap.commands", "pavemap.cli", "pavemap", "pavemap.weights.manage"),
 )
 
 #: Imports that run up a layer on purpose, each (importer, imported) with why. Keep this short (issue 44: <= 3).

@@ -55,3 +55,13 @@ def weight_dirs() -> list[Path]:
 
 
 __all__ = ["install_dir", "user_cache_dir", "user_data_dir", "weight_dirs"]
+
+
+def weight_search_dirs() -> list[Path]:
+    """The folders searched for weight files, in order: the user's (:func:`weight_dirs`), then
+    ``shared/data/pretrained`` beside a source checkout (the project's development machines)."""
+    dirs = weight_dirs()
+    here = Path(__file__).resolve()
+    if len(here.parents) > 3:  # a source checkout: <work>/<repo>/src/pavemap/user_cache.py
+        dirs.append(here.parents[3] / "shared" / "data" / "pretrained")
+    return dirs

@@ -18,7 +18,7 @@ def _size(n: int | None) -> str:
 def _list() -> None:
     """Each known weight file: where it is found, its size, sha256 and whether that is the expected one."""
     from pavemap.user_cache import install_dir, user_cache_dir
-    from pavemap.weights.registry import weight_rows
+    from pavemap.weights.manage import weight_rows
 
     for r in weight_rows():
         state = {True: "ok", False: "MISMATCH", None: "required, MISSING" if r["required"] else "not installed"}
@@ -34,7 +34,7 @@ def _list() -> None:
 
 def _verify() -> None:
     """Exit status 1 naming the file when a known file's sha256 differs or the default detector is missing."""
-    from pavemap.weights.registry import verify_problems, weight_rows
+    from pavemap.weights.manage import verify_problems, weight_rows
 
     rows = weight_rows()
     problems = verify_problems(rows)
@@ -65,7 +65,7 @@ def register(app: typer.Typer) -> None:
         force: bool = typer.Option(False, "--force", help="Replace a different installed file of the same name."),
     ) -> None:
         """Copy FILE into your weights folder (atomically) after checking it loads (a YOLO detection model)."""
-        from pavemap.weights.registry import install_weights
+        from pavemap.weights.manage import install_weights
 
         dest, summary = install_weights(file, force=force)
         typer.echo(f"installed {dest} ({summary})")

@@ -76,15 +76,10 @@ DEFAULT = "espnetv2"
 
 
 def weight_dirs() -> list[Path]:
-    """The folders searched for weight files, in order: the user's (:func:`pavemap.user_cache.weight_dirs`),
-    then ``shared/data/pretrained`` beside a source checkout (the project's development machines)."""
-    from pavemap.user_cache import weight_dirs as user_weight_dirs
+    """The folders searched for weight files (:func:`pavemap.user_cache.weight_search_dirs`)."""
+    from pavemap.user_cache import weight_search_dirs
 
-    dirs = user_weight_dirs()
-    here = Path(__file__).resolve()
-    if len(here.parents) > 4:  # a source checkout: <work>/<repo>/src/pavemap/segment/espnet.py
-        dirs.append(here.parents[4] / "shared" / "data" / "pretrained")
-    return dirs
+    return weight_search_dirs()
 
 
 def find_weights(arch: str, weights: str | os.PathLike | None = None) -> Path:
