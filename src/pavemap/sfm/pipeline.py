@@ -160,7 +160,7 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
               refine_intrinsics: bool = False, min_parallax: float = 0.002, init_min_tri_angle: float = 2.0,
               checks: SfmChecks | None = None, dense_scale: bool = True, road_steps: bool = True,
               times: np.ndarray | None = None, limits: PartLimits | None = None,
-              planar_fallback: bool = True) -> SfmResult:
+              method: str = "auto") -> SfmResult:
     """Metric z-up camera-to-world poses (N, 4, 4) for ``images`` (video order) of one ``camera``.
 
     ``ego_mask`` (H, W) bool, True on the ego vehicle: no features there. ``refine_intrinsics``: the
@@ -173,9 +173,9 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     scale from them where the road's steps could not set it. ``times`` (N,) s of the images, when known
     (a video's frame rate): the path's speed changes are checked too (``SfmChecks.max_accel_mps2``).
     ``limits``: when a step breaks the path (:mod:`pavemap.sfm.parts`): the longest consistent part is kept and
-    the frames left out are named in ``info["dropped"]``. ``planar_fallback``: where COLMAP gives no usable model
-    (none, too small, or steps that do not follow the car's heading), the path comes from the car's planar
-    motion between consecutive frames instead (:mod:`pavemap.sfm.planar`).
+    the frames left out are named in ``info["dropped"]``. ``method``: "auto" (COLMAP; where it gives no usable
+    model: none, too small, or steps that do not follow the car's heading, the car's planar motion between
+    consecutive frames instead, :mod:`pavemap.sfm.planar`), "colmap" (no fallback) or "planar" (no COLMAP).
     Raises :class:`~pavemap.sfm.result.SfmRefusedError` (a PavemapError holding what was measured) with a clear line
     when nothing usable is left or the kept part fails a check.
     """
@@ -192,6 +192,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
                            f"{camera.width}x{camera.height}")
     if times is not None and len(times) != len(images):
         raise PavemapError(f"SfM: {len(times)} frame times for {len(images)} images")
+    if method not in ("auto", "colmap", "planar"):
+        raise PavemapError(f"SfM method must be auto, colmap or planar, got {method!r}")
     checks = checks or SfmChecks(min_registered=min_registered)
     limits = limits or PartLimits()
     images = [Path(p) for p in images]
@@ -213,9 +215,15 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
              "overlap": overlap, "seed": seed, "init_min_tri_angle": init_min_tri_angle,
              "refine_intrinsics": refine_intrinsics, "min_share": max(checks.min_registered, 0.9),
              "max_focal_change": 0.05}
-        rec = _colmap_model(pycolmap, work, image_dir, names, camera, ego_mask, o)
+        if keyframes.sum() < limits.min_frames:
+            raise PavemapError(f"the camera hardly moves: only {int(keyframes.sum())} of {len(images)} frames show "
+                               f"parallax of {min_parallax:.1%} of the image width or more against the frame before "
+                               f"(need {limits.min_frames}; a parked car, or a frame rate far above the motion)")
+        rec = _colmap_model(pycolmap, work, image_dir, names, camera, ego_mask, o) if method != "planar" else None
         res = None
         try:
+            if method == "planar":
+                raise PavemapError("planar motion asked for")
             if rec is None:
                 raise PavemapError(f"SfM failed: no reconstruction from {len(names)} keyframes ({hint})")
             res = _metric_result(rec, all_names, keyframes, camera, camera_height, limits, hint, info)
@@ -224,9 +232,10 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
                 raise PavemapError("SfM's steps point off the car's heading in most places (its translations "
                                    "are wrong)")
         except PavemapError as e:
-            if not planar_fallback:
+            if method == "colmap":
                 raise
-            log.warning("SfM: %s; following the car's planar motion instead", e)
+            if method == "auto":
+                log.warning("SfM: %s; following the car's planar motion instead", e)
             info["sfm_failure"] = str(e)
             res = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info)
         if "intrinsics" in o:

@@ -46,7 +46,7 @@ class PlanarConfig:
     ratio: float = 0.75  # Lowe's ratio test
     max_yaw_deg: float = 35.0  # per step
     inlier_px: float = 2.0  # epipolar error (px at ``width``) counted as a match
-    min_inliers: int = 20
+    min_inliers: int = 12
     refine_mount: bool = False  # the arc-model search moved KITTI's mount 2 deg away from the truth
 
 

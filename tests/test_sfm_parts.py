@@ -1,0 +1,211 @@
+"""Issue 42: poses from real video keep what can be kept, follow the car's motion, and leave a diagnosis.
+
+A synthetic 2 Hz drive with a 90 deg turn registers fully (COLMAP, and the planar motion model alone); a drive
+whose middle third is featureless grey keeps its longest part and names the grey frames; a refused import
+and a camera that never moves leave ``sfm.json`` and ``sfm.png`` with the reason. The path checks themselves
+(:mod:`pavemap.sfm.parts`) on paths with a known fault.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from pavemap.errors import PavemapError
+from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_flags
+
+MOUNT_HEIGHT = 1.65  # the kitti-like rig's camera height over the road
+
+
+def turn_path(step: float = 4.0, straight: int = 6, radius: float = 15.0, arc_steps: int = 6) -> np.ndarray:
+    """(F, 3) camera centres of a drive at 2 Hz and 8 m/s: straight, a 90 deg left turn, straight."""
+    pts = [np.zeros(2)]
+    pts += [np.array([step * (k + 1), 0.0]) for k in range(straight)]
+    c = pts[-1] + [0.0, radius]
+    pts += [c + radius * np.array([np.cos(a), np.sin(a)])
+            for a in -np.pi / 2 + np.pi / 2 * np.arange(1, arc_steps + 1) / arc_steps]
+    pts += [pts[-1] + step * (k + 1) * np.array([0.0, 1.0]) for k in range(straight)]
+    xy = np.array(pts)
+    return np.c_[xy, np.zeros(len(xy))]
+
+
+def similarity_rmse_pct(est: np.ndarray, gt: np.ndarray) -> float:
+    """RMSE (% of the true path length) of ``est`` (N, 3) after the best similarity onto ``gt`` (N, 3)."""
+    me, mg = est.mean(0), gt.mean(0)
+    E, G = est - me, gt - mg
+    U, S, Vt = np.linalg.svd(G.T @ E / len(E))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    s = float((S * np.diag(D)).sum() / E.var(0).sum())
+    err = np.linalg.norm(s * E @ (U @ D @ Vt).T - G, axis=1)
+    return 100 * float(np.sqrt((err**2).mean())) / float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum())
+
+
+@pytest.fixture(scope="module")
+def turn_drive(tmp_path_factory):
+    """A rendered 2 Hz drive through a 90 deg turn: (image folder, cameras.json, true centres (F, 3))."""
+    pytest.importorskip("pycolmap")
+    from pavemap.synth import synthesize
+
+    root = tmp_path_factory.mktemp("turn")
+    p = turn_path()
+    truth = synthesize(root / "truth", preset="kitti-like", seed=0, frames=len(p), scale=0.5, depth="none",
+                       progress=False, path=p.tolist(), hz=2.0)
+    cam = truth.cameras["CAM_FRONT"]
+    (root / "cameras.json").write_text(json.dumps(
+        {"cameras": {"CAM_FRONT": {"width": cam.width, "height": cam.height, "K": cam.K.tolist()}}}))
+    gt = np.stack([f.views["CAM_FRONT"].T_world_cam[:3, 3] for f in truth.frames])
+    return root / "truth" / "images" / "CAM_FRONT", root / "cameras.json", gt
+
+
+@pytest.mark.slow
+def test_2hz_turn_registers_fully(turn_drive, tmp_path):
+    from pavemap.io.folder import import_folder
+    from pavemap.io.sequence import read_sequence
+
+    images, cameras, gt = turn_drive
+    import_folder(images, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT, fps=2.0)
+    s = read_sequence(tmp_path / "seq")
+    assert len(s.frames) == len(gt)  # every frame of the turn kept
+    est = np.stack([f.views["CAM_FRONT"].T_world_cam[:3, 3] for f in s.frames])
+    assert similarity_rmse_pct(est, gt) <= 1.0
+    heading = [np.degrees(np.arctan2(*(est[k + 1] - est[k])[1::-1])) for k in (0, len(est) - 2)]
+    assert abs(abs(heading[1] - heading[0]) - 90) < 10  # the turn is in the path
+    report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
+    assert report["status"] == "ok" and report["dropped"] == {} and report["registered"] == len(gt)
+    assert report["limits"]["max_height_dev"] > 0 and (tmp_path / "seq" / "sfm.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_planar_motion_alone_follows_the_turn(turn_drive):
+    from pavemap.io.folder import _camera_images, read_cameras_json
+    from pavemap.sfm.pipeline import sfm_poses
+
+    images, cameras, gt = turn_drive
+    cams = read_cameras_json(cameras)
+    paths = _camera_images(images, cams)["CAM_FRONT"]
+    res = sfm_poses(paths, cams["CAM_FRONT"], camera_height=MOUNT_HEIGHT, method="planar")
+    assert res.info["method"] == "planar motion" and res.registered.all()
+    assert similarity_rmse_pct(res.T_world_cam[:, :3, 3], gt) <= 1.5
+    assert sum(res.info["planar"]["yaw_deg"]) == pytest.approx(90, abs=6)  # left turn: positive yaw
+    assert res.info["planar"]["reverse"] is False
+
+
+@pytest.mark.slow
+def test_grey_middle_third_keeps_the_longest_part_and_names_the_rest(turn_drive, tmp_path):
+    from pavemap.io.folder import import_folder
+    from pavemap.io.sequence import read_sequence
+
+    images, cameras, gt = turn_drive
+    src = tmp_path / "images"
+    shutil.copytree(images, src)
+    files = sorted(src.iterdir())
+    grey = range(7, 13)
+    for k in grey:  # a covered lens / a wall of fog: nothing to match
+        w, h = Image.open(files[k]).size
+        Image.new("RGB", (w, h), (128, 128, 128)).save(files[k])
+    import_folder(src, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT)
+    s = read_sequence(tmp_path / "seq")
+    report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
+    kept = [f.index for f in s.frames]
+    assert kept == list(range(0, 7))  # the longer textured part (7 frames against 6)
+    dropped = {int(k): v for k, v in report["dropped"].items()}
+    assert set(grey) <= set(dropped) and set(range(13, 19)) <= set(dropped)
+    assert all(dropped[k] for k in dropped)  # each with its reason
+    assert [p for p in report["parts"] if p[2]] == [[0, 6, True]]
+    assert "not registered" in dropped[9]
+
+
+def test_camera_that_never_moves_is_refused_with_a_diagnosis(turn_drive, tmp_path):
+    from pavemap.io.folder import import_folder
+
+    images, cameras, _ = turn_drive
+    src = tmp_path / "images"
+    src.mkdir()
+    first = sorted(images.iterdir())[0]
+    for k in range(8):  # a parked car: the same view again and again
+        shutil.copy(first, src / f"{k:06d}.png")
+    with pytest.raises(PavemapError, match=r"the camera hardly moves.*sfm\.json"):
+        import_folder(src, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT)
+    report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
+    assert report["status"] == "refused" and "hardly moves" in report["reason"]
+    assert report["images"] == 8 and (tmp_path / "seq" / "sfm.png").stat().st_size > 1000
+    assert not (tmp_path / "seq" / "sequence.json").exists()  # nothing that looks like an imported drive
+
+
+def test_refused_import_leaves_its_diagnosis(turn_drive, tmp_path):
+    from pavemap.io.folder import import_folder
+
+    images, cameras, _ = turn_drive
+    src = tmp_path / "images"
+    src.mkdir()
+    w, h = Image.open(sorted(images.iterdir())[0]).size
+    rng = np.random.default_rng(0)
+    for k in range(8):  # independent noise: every frame "moves", nothing matches
+        Image.fromarray(rng.integers(0, 255, (h, w, 3), dtype=np.uint8)).save(src / f"{k:06d}.png")
+    with pytest.raises(PavemapError, match=r"sfm\.json"):
+        import_folder(src, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT)
+    report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
+    assert report["status"] == "refused" and report["reason"]
+    assert (tmp_path / "seq" / "sfm.png").is_file()
+
+
+# ----------------------------------------------------------------------------- the path checks alone
+
+
+def _straight(n: int = 12, step: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    C = np.c_[np.arange(n) * step, np.zeros(n), np.zeros(n)]
+    fwd = np.tile([1.0, 0.0, 0.0], (n, 1))
+    return C, fwd
+
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def test_a_teleport_cuts_the_path_and_the_longer_side_is_kept():
+    C, fwd = _straight()
+    C[8:] += [9.0, 0.0, 0.0]  # step 7 -> 8 is 10x the others
+    keep, dropped, fig = consistent_parts(np.ones(len(C), bool), C, fwd, UP)
+    assert keep[:8].all() and not keep[8:].any()
+    assert all("jumps" in dropped[i] for i in range(8, 12))
+    assert fig["parts"] == [[0, 7, True], [8, 11, False]]
+
+
+def test_an_unregistered_frame_splits_the_path():
+    C, fwd = _straight()
+    reg = np.ones(len(C), bool)
+    reg[3] = False
+    keep, dropped, _ = consistent_parts(reg, C, fwd, UP)
+    assert keep[4:].all() and not keep[:4].any()
+    assert dropped[3] == "not registered by SfM" and "shorter part" in dropped[0]
+
+
+def test_a_sideways_step_is_repaired_onto_the_heading_not_cut():
+    C, fwd = _straight()
+    C[6:] += [0.0, 1.0, 0.0]  # step 5 -> 6 slides 45 deg sideways
+    flags = step_flags(C, fwd, UP, PartLimits())
+    assert flags["skids"].tolist() == [k == 5 for k in range(11)] and not flags["breaks"].any()
+    fixed = repair_skids(C, fwd, UP, flags["skids"])
+    assert np.allclose(fixed[:, 1], 0.0) and np.allclose(np.diff(fixed[:, 0]), 1.0)
+
+
+def test_a_reversed_clip_is_seen_and_its_steps_kept_backwards():
+    C, fwd = _straight()
+    C = C[::-1].copy()  # frames numbered backwards: the camera looks +x and moves -x
+    flags = step_flags(C, fwd, UP, PartLimits())
+    assert flags["reverse"] is True and not flags["skids"].any()
+    C[6:] += [0.0, 1.0, 0.0]
+    flags = step_flags(C, fwd, UP, PartLimits())
+    fixed = repair_skids(C, fwd, UP, flags["skids"], reverse=flags["reverse"])
+    assert np.allclose(np.diff(fixed[:, 0]), -1.0)
+
+
+def test_a_rotation_jump_breaks_the_path():
+    C, fwd = _straight()
+    a = np.radians(50)
+    fwd[6:] = [np.cos(a), np.sin(a), 0.0]  # the heading jumps 50 deg between frames 5 and 6
+    flags = step_flags(C, fwd, UP, PartLimits())
+    assert flags["breaks"][5] and "heading jumps" in flags["why"][5]
