@@ -209,3 +209,45 @@ def test_a_rotation_jump_breaks_the_path():
     fwd[6:] = [np.cos(a), np.sin(a), 0.0]  # the heading jumps 50 deg between frames 5 and 6
     flags = step_flags(C, fwd, UP, PartLimits())
     assert flags["breaks"][5] and "heading jumps" in flags["why"][5]
+
+
+def test_video_frame_rate_from_the_motion(tmp_path):
+    """``--fps auto``: a 10 Hz video that stops for 2 s keeps one frame of the stop, fewer frames than it has,
+    and removes the frames it did not keep."""
+    import cv2
+
+    from pavemap.io.folder import import_video
+    from pavemap.io.sequence import read_sequence
+    from pavemap.synth import synthesize
+
+    steps = [1.0] * 10 + [0.0] * 20 + [1.0] * 10  # 10 m/s at 10 Hz, a 2 s stop, away again
+    s = np.concatenate([[0.0], np.cumsum(steps)])
+    path = np.c_[s, np.zeros_like(s), np.zeros_like(s)]
+    truth = synthesize(tmp_path / "truth", preset="kitti-like", seed=1, frames=len(path), scale=0.5, depth="none",
+                       progress=False, path=path.tolist(), hz=10.0)
+    cam = truth.cameras["CAM_FRONT"]
+    vw = cv2.VideoWriter(str(tmp_path / "drive.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (cam.width, cam.height))
+    rows = ["timestamp,tx,ty,tz,qw,qx,qy,qz"]
+    from scipy.spatial.transform import Rotation
+
+    for k, f in enumerate(truth.frames):
+        vw.write(cv2.imread(str(truth.root / f.views["CAM_FRONT"].image)))
+        T = f.views["CAM_FRONT"].T_world_cam
+        x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
+        rows.append(f"{k / 10.0},{T[0, 3]},{T[1, 3]},{T[2, 3]},{w},{x},{y},{z}")
+    vw.release()
+    (tmp_path / "poses.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "cameras.json").write_text(json.dumps(
+        {"cameras": {"CAM_FRONT": {"width": cam.width, "height": cam.height, "K": cam.K.tolist()}}}))
+    import_video(tmp_path / "drive.avi", tmp_path / "cameras.json", tmp_path / "poses.csv", tmp_path / "seq",
+                 fps="auto")
+    seq = read_sequence(tmp_path / "seq")
+    t = np.array([f.timestamp for f in seq.frames])
+    assert 3 <= len(t) < len(path)  # fewer frames than the video has
+    assert ((t > 1.05) & (t < 2.95)).sum() <= 1  # the stop (1.0 s .. 3.0 s) keeps at most one frame
+    assert np.all(np.diff(t) > 0)
+    on_disk = sorted((tmp_path / "seq" / "images" / "CAM_FRONT").iterdir())
+    assert len(on_disk) == len(t)  # the frames not kept were removed
+    with pytest.raises(PavemapError, match="'auto'"):
+        import_video(tmp_path / "drive.avi", tmp_path / "cameras.json", tmp_path / "poses.csv", tmp_path / "s2",
+                     fps="fast")

@@ -229,7 +229,9 @@ def video_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Output sequence folder."),
     cameras: Path = typer.Option(..., "--cameras", help="cameras.json with the video's one camera."),
     poses: str = typer.Option(..., "--poses", help="poses.csv (timestamps in s, interpolated) or 'sfm'."),
-    fps: float = typer.Option(2.0, help="Frames per second to keep (0 = every frame)."),
+    fps: str = typer.Option("2", help="Frames per second to keep (0 = every frame), or 'auto': read at up to "
+                            "10 per second and keep a frame whenever the scene moved ~3 % of the image width "
+                            "(a frame rate from the motion: see docs/sfm.md)."),
     start: float = typer.Option(0.0, help="Start time, seconds."),
     stop: float | None = typer.Option(None, help="Stop time, seconds."),
     max_frames: int | None = typer.Option(None, help="Keep at most this many frames."),
@@ -243,10 +245,27 @@ def video_cmd(
     """A video of one camera → frames at --fps with poses from a CSV or SfM → sequence folder."""
     from pavemap.io.folder import import_video
 
-    seq = import_video(video, cameras, poses, out, fps=fps or None, start=start, stop=stop, max_frames=max_frames,
+    seq = import_video(video, cameras, poses, out, fps=_fps(fps), start=start, stop=stop, max_frames=max_frames,
                        camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm))
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device,
                                   segmenter_weights))
+
+
+def _fps(text: str) -> float | str | None:
+    """--fps: 'auto', or a number of frames per second (0: every frame)."""
+    import math
+
+    from pavemap.errors import PavemapError
+
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        v = float(text)
+    except ValueError:
+        raise PavemapError(f"--fps must be a number of frames per second or 'auto', got {text!r}") from None
+    if not math.isfinite(v) or v < 0:
+        raise PavemapError(f"--fps must be a positive, finite number of frames per second (0: all), got {text!r}")
+    return v or None
 
 
 @imports_app.command("gps")

@@ -35,7 +35,11 @@ from pavemap.io.atomic import atomic_path
 from pavemap.io.egomask import resolve_ego_mask, store_ego_masks
 from pavemap.io.sequence import SequenceError, check_intrinsics, check_pose, write_sequence
 from pavemap.palette import PAVEMAP_CLASSES
-from pavemap.sfm.pipeline import report_result, sfm_poses_or_report  # pycolmap is imported when SfM runs
+from pavemap.sfm.pipeline import (  # pycolmap is imported when SfM runs
+    frames_by_motion,
+    report_result,
+    sfm_poses_or_report,
+)
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -381,6 +385,27 @@ def extract_video_frames(
     return paths, stamps
 
 
+#: ``--fps auto``: frames are read at up to this rate, then kept by the motion between them
+AUTO_FPS_CEILING = 10.0
+#: ... a frame is kept once the scene has moved this share of the image width since the last one kept (the
+#: median flow of tracked corners; 2 Hz keyframes of a car at 30 km/h move ~3 %, which SfM and the road's steps
+#: handle; more than ~8 % and the road ahead no longer overlaps well)
+AUTO_PARALLAX = 0.03
+
+
+def _frames_by_motion(paths: list[Path], stamps: list[float], cam: Camera,
+                      max_frames: int | None) -> tuple[list[Path], list[float]]:
+    """The extracted frames ``paths`` kept where the camera moved enough since the last one kept (a frame rate
+    from the motion: a stop keeps one frame, a fast stretch keeps more per second); the others, written by this
+    import, are removed. ``max_frames`` caps what is kept."""
+    ego, _ = resolve_ego_mask(None, paths, cam.width, cam.height, default_auto=True)
+    keep = frames_by_motion(paths, AUTO_PARALLAX, ego)
+    idx = np.flatnonzero(keep)[: max_frames or None]
+    for i in sorted(set(range(len(paths))) - set(idx.tolist())):
+        paths[i].unlink(missing_ok=True)
+    return [paths[i] for i in idx], [stamps[i] for i in idx]
+
+
 def interpolate_poses(rows: list[PoseRow], times: np.ndarray) -> np.ndarray:
     """Camera-to-world poses at ``times`` (N,) from timestamped rows: linear position, slerp rotation → (N, 4, 4)."""
     from scipy.spatial.transform import Rotation, Slerp
@@ -403,21 +428,28 @@ def import_video(
     cameras_json: str | os.PathLike,
     poses: str | os.PathLike,
     out: str | os.PathLike,
-    fps: float | None = 2.0,
+    fps: float | str | None = 2.0,
     start: float = 0.0,
     stop: float | None = None,
     max_frames: int | None = None,
     camera_height: float = 1.5,
     name: str | None = None, geo: GeoInput | None = None,
 ) -> Sequence:
-    """Import a video of one camera: frames at ``fps``; poses from a CSV (timestamped rows are
-    interpolated to the frame times, else one row per extracted frame) or ``"sfm"``."""
+    """Import a video of one camera: frames at ``fps`` (``"auto"``: chosen by the motion, :func:`_frames_by_motion`);
+    poses from a CSV (timestamped rows are interpolated to the frame times, else one row per extracted frame) or
+    ``"sfm"``."""
     video, out = Path(video), Path(out)
     cameras = read_cameras_json(cameras_json)
     if len(cameras) != 1:
         raise SequenceError(cameras_json, f"a video has one camera; cameras.json lists {sorted(cameras)}")
     cam = next(iter(cameras.values()))
-    paths, stamps = extract_video_frames(video, out / "images" / cam.name, fps, start, stop, max_frames)
+    auto = isinstance(fps, str)
+    if auto and fps != "auto":
+        raise PavemapError(f"--fps must be a number of frames per second or 'auto', got {fps!r}")
+    paths, stamps = extract_video_frames(video, out / "images" / cam.name, AUTO_FPS_CEILING if auto else fps,
+                                         start, stop, None if auto else max_frames)
+    if auto:
+        paths, stamps = _frames_by_motion(paths, stamps, cam, max_frames)
     w, h = image_size(paths[0])
     if (w, h) != (cam.width, cam.height):
         raise SequenceError(video, f"frames are {w}x{h}, cameras.json says {cam.name} is {cam.width}x{cam.height}")

@@ -437,3 +437,10 @@ def report_result(res: SfmResult | None, out: Path) -> None:
     """The kept path's ``sfm.json`` / ``sfm.png`` (nothing when poses were given; the import command names them)."""
     if res is not None:
         write_sfm_report(res.info, out, res.T_world_cam, res.registered, scale=res.scale)
+
+
+def frames_by_motion(images: list[Path], min_parallax: float, ego_mask: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: the frames SfM would take as keyframes at ``min_parallax`` (share of the image width the
+    scene moves between kept frames; :func:`pavemap.sfm.checks.select_keyframes`), for choosing a video's
+    frame rate from its motion."""
+    return select_keyframes(images, min_parallax, ego_mask)
