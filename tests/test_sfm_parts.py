@@ -136,6 +136,25 @@ def test_camera_that_never_moves_is_refused_with_a_diagnosis(turn_drive, tmp_pat
     assert not (tmp_path / "seq" / "sequence.json").exists()  # nothing that looks like an imported drive
 
 
+def test_refused_import_command_keeps_only_the_diagnosis(turn_drive, tmp_path):
+    """Through the CLI: a refused import exits 2 with one line naming the files, and the folder keeps sfm.json /
+    sfm.png (its images and masks, which would look like a started import, are removed)."""
+    from typer.testing import CliRunner
+
+    from pavemap.cli import app
+
+    images, cameras, _ = turn_drive
+    src = tmp_path / "images"
+    src.mkdir()
+    for k in range(8):
+        shutil.copy(sorted(images.iterdir())[0], src / f"{k:06d}.png")
+    r = CliRunner().invoke(app, ["import", "folder", str(src), "--cameras", str(cameras), "--poses", "sfm",
+                                 "--out", str(tmp_path / "seq"), "--no-semantics"])
+    assert r.exit_code == 2 and "hardly moves" in r.output and "sfm.json" in r.output
+    left = sorted(p.name for p in (tmp_path / "seq").iterdir())
+    assert "sfm.json" in left and "sfm.png" in left and "sequence.json" not in left and "images" not in left
+
+
 def test_refused_import_leaves_its_diagnosis(turn_drive, tmp_path):
     from pavemap.io.folder import import_folder
 

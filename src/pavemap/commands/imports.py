@@ -37,9 +37,16 @@ _OVERWRITE = typer.Option(False, "--overwrite", help="Replace a sequence folder 
                           "files pavemap wrote there; a folder holding anything else is refused).")
 
 
+def _diagnosis(rel: str) -> bool:
+    """What a failed import keeps: SfM's report of what it measured (no sequence: nothing looks imported)."""
+    from pavemap.sfm.report import SFM_FIGURE, SFM_REPORT
+
+    return rel in (SFM_REPORT, SFM_FIGURE)
+
+
 def _owned_output(input_arg: str) -> Callable:
     """An import command writes into ``--out`` only when it is new, empty or a sequence folder pavemap wrote
-    (``--overwrite``), never inside its input ``input_arg``; a failed import deletes what it wrote
+    (``--overwrite``), never inside its input ``input_arg``; a failed import deletes what it wrote but SfM's diagnosis
     (:func:`pavemap.io.owned.writing`)."""
     def wrap(command: Callable) -> Callable:
         @functools.wraps(command)
@@ -48,7 +55,7 @@ def _owned_output(input_arg: str) -> Callable:
 
             source = kw.get(input_arg)
             with writing(kw["out"], "sequence", bool(kw.get("overwrite")), inputs=(source,),  # type: ignore[arg-type]
-                         info={"source": str(source)}):
+                         info={"source": str(source)}, keep_on_failure=_diagnosis):
                 return command(**kw)
         return run
     return wrap

@@ -225,10 +225,11 @@ def undo_on_failure(out: str | os.PathLike, keep: tuple[str, ...] = ()) -> Itera
 def writing(out: str | os.PathLike, kind: str, overwrite: bool = False,
             inputs: Iterable[str | os.PathLike | None] = (), info: dict | None = None,
             same: Callable[[dict], bool] | None = None, legacy: Callable[[Path], dict | None] | None = None,
-            early: bool = True) -> Iterator[OutputFolder]:
+            early: bool = True, keep_on_failure: Callable[[str], bool] | None = None) -> Iterator[OutputFolder]:
     """Claim ``out`` (:func:`claim`) for the body of a ``with``; when the body fails, delete what it wrote
-    (a half-written folder must not look complete), then record the manifest either way. The folder is
-    locked for the body (:mod:`pavemap.io.lock`): a second process writing it stops with an error."""
+    (a half-written folder must not look complete) except the diagnosis files ``keep_on_failure(rel)`` names,
+    then record the manifest either way. The folder is locked for the body (:mod:`pavemap.io.lock`): a second
+    process writing it stops with an error."""
     check_outside_inputs(out, inputs)  # before the lock creates the folder
     with locked(out):
         folder = claim(out, kind, overwrite, inputs, info, same, legacy, early)
@@ -236,7 +237,7 @@ def writing(out: str | os.PathLike, kind: str, overwrite: bool = False,
             yield folder
         except BaseException:
             with contextlib.suppress(OSError):  # a read-only or full disk: the original error matters
-                folder.discard(lambda rel: False)
+                folder.discard(keep_on_failure or (lambda rel: False))
                 folder.record("failed")
             raise
         folder.record()
