@@ -52,7 +52,7 @@ def ensure_data(data: Path) -> dict[str, Path]:
         paths[name] = p
     p = data / "kitti-real"
     if not (p / "sequence.json").is_file() and KITTI_SAMPLE.is_dir():
-        from pavemap.io.kitti import import_kitti
+        from pavemap.ingest.kitti import import_kitti
 
         import_kitti(KITTI_SAMPLE, "90", p, camera=0, lidar=False)
     if (p / "sequence.json").is_file():

@@ -19,9 +19,9 @@ from pavemap.errors import PavemapError, SequenceError
 from pavemap.geo.attach import GeoInput, parse_geo_origin
 from pavemap.geo.georef import position_error
 from pavemap.geo.tangent import local_tangent
-from pavemap.io.folder import import_folder
+from pavemap.ingest.folder import import_folder
+from pavemap.ingest.kitti import import_kitti
 from pavemap.io.gps import exif_fix, read_gps, read_gpx, read_nmea, read_oxts
-from pavemap.io.kitti import import_kitti
 from pavemap.io.sequence import read_sequence
 from pavemap.types import GeoOrigin
 
@@ -373,7 +373,7 @@ def test_standing_vehicle_and_hand_origin(tmp_path):
 
 
 def test_video_import_with_gps(tmp_path):
-    from pavemap.io.folder import import_video
+    from pavemap.ingest.video import import_video
     from test_import_folder import _write_video
 
     _write_video(tmp_path / "drive.avi", n=60, fps=15.0)  # 4 s

@@ -9,7 +9,9 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from pavemap.io.folder import import_folder, import_video, read_poses_csv
+from pavemap.ingest.folder import import_folder
+from pavemap.ingest.video import import_video
+from pavemap.io.folder import read_poses_csv
 from pavemap.io.sequence import SequenceError, load_rgb, read_sequence
 
 W, H = 48, 32

@@ -7,7 +7,8 @@ import pytest
 from PIL import Image
 
 from pavemap.errors import PavemapError
-from pavemap.io.kitti import A_KITTI_TO_WORLD, import_kitti, read_calib
+from pavemap.ingest.kitti import import_kitti
+from pavemap.io.kitti import A_KITTI_TO_WORLD, read_calib
 from pavemap.io.sequence import SequenceError, load_depth, load_rgb, read_sequence
 
 W, H = 96, 40

@@ -117,7 +117,9 @@ def _gpkg_rows(path: Path) -> dict[str, list]:
         for t in tables:
             cur = db.execute(f'SELECT * FROM "{t}"')
             cols = [c[0] for c in cur.description]
-            out[t] = [tuple(v for c, v in zip(cols, row, strict=True) if c not in ("last_change", "processed_utc"))
+            # time stamps: a table's last change, a run's processing time, a QGIS style's save time
+            out[t] = [tuple(v for c, v in zip(cols, row, strict=True)
+                            if c not in ("last_change", "processed_utc", "update_time"))
                       for row in cur]
     return out
 

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("pycolmap")
 
 from pavemap.errors import PavemapError  # noqa: E402
-from pavemap.io.folder import import_folder  # noqa: E402
+from pavemap.ingest.folder import import_folder  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.sfm.pipeline import sfm_poses  # noqa: E402
 

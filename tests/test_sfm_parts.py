@@ -63,7 +63,7 @@ def turn_drive(tmp_path_factory):
 
 @pytest.mark.slow
 def test_2hz_turn_registers_fully(turn_drive, tmp_path):
-    from pavemap.io.folder import import_folder
+    from pavemap.ingest.folder import import_folder
     from pavemap.io.sequence import read_sequence
 
     images, cameras, gt = turn_drive
@@ -81,7 +81,8 @@ def test_2hz_turn_registers_fully(turn_drive, tmp_path):
 
 @pytest.mark.slow
 def test_planar_motion_alone_follows_the_turn(turn_drive):
-    from pavemap.io.folder import _camera_images, read_cameras_json
+    from pavemap.ingest.folder import _camera_images
+    from pavemap.io.folder import read_cameras_json
     from pavemap.sfm.pipeline import sfm_poses
 
     images, cameras, gt = turn_drive
@@ -96,7 +97,7 @@ def test_planar_motion_alone_follows_the_turn(turn_drive):
 
 @pytest.mark.slow
 def test_grey_middle_third_keeps_the_longest_part_and_names_the_rest(turn_drive, tmp_path):
-    from pavemap.io.folder import import_folder
+    from pavemap.ingest.folder import import_folder
     from pavemap.io.sequence import read_sequence
 
     images, cameras, gt = turn_drive
@@ -120,7 +121,7 @@ def test_grey_middle_third_keeps_the_longest_part_and_names_the_rest(turn_drive,
 
 
 def test_camera_that_never_moves_is_refused_with_a_diagnosis(turn_drive, tmp_path):
-    from pavemap.io.folder import import_folder
+    from pavemap.ingest.folder import import_folder
 
     images, cameras, _ = turn_drive
     src = tmp_path / "images"
@@ -156,7 +157,7 @@ def test_refused_import_command_keeps_only_the_diagnosis(turn_drive, tmp_path):
 
 
 def test_refused_import_leaves_its_diagnosis(turn_drive, tmp_path):
-    from pavemap.io.folder import import_folder
+    from pavemap.ingest.folder import import_folder
 
     images, cameras, _ = turn_drive
     src = tmp_path / "images"
@@ -235,7 +236,7 @@ def test_video_frame_rate_from_the_motion(tmp_path):
     and removes the frames it did not keep."""
     import cv2
 
-    from pavemap.io.folder import import_video
+    from pavemap.ingest.video import import_video
     from pavemap.io.sequence import read_sequence
     from pavemap.synth import synthesize
 
@@ -270,3 +271,39 @@ def test_video_frame_rate_from_the_motion(tmp_path):
     with pytest.raises(PavemapError, match="'auto'"):
         import_video(tmp_path / "drive.avi", tmp_path / "cameras.json", tmp_path / "poses.csv", tmp_path / "s2",
                      fps="fast")
+
+
+def test_sfm_masks_what_moves(turn_drive, tmp_path):
+    """With the segmenter's masks, no feature sits on a vehicle: a fake "mover" over the top-left ninth of every
+    frame is handed to COLMAP as a per-image mask, the path is still found, and sfm.json counts the masks."""
+    from pavemap.ingest.folder import import_folder
+    from pavemap.segment.movers import movable_masks
+
+    images, cameras, gt = turn_drive
+    half = []
+
+    def left_half(path):  # noqa: ANN001, ANN202
+        from PIL import Image
+
+        w, h = Image.open(path).size
+        m = np.zeros((h, w), bool)
+        m[: h // 3, : w // 3] = True
+        half.append(path)
+        return m
+
+    import_folder(images, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT, movers=left_half)
+    report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
+    assert report["movers"]["frames_masked"] == len(gt)
+    assert report["movers"]["mean_share"] == pytest.approx(1 / 9, rel=0.05)
+    assert report["registered"] >= len(gt) // 2  # a ninth of a small synthetic frame holds many of its features
+    assert len(half) == len(gt)
+    masks, said = movable_masks("none")
+    assert masks is None and "no vehicle masks" in said
+    try:
+        masks, said = movable_masks("auto", device="cpu")
+    except PavemapError:
+        pytest.skip("no ESPNet weights here")
+    if masks is None:
+        pytest.skip(said)
+    m = masks(sorted(images.iterdir())[0])  # the synthetic world's parked cars, if any, are masked; no road
+    assert m is not None and m.shape == (188, 620) and m.mean() < 0.5

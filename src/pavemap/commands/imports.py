@@ -161,7 +161,7 @@ def kitti_cmd(
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """KITTI odometry sequence → sequence folder."""
-    from pavemap.io.kitti import import_kitti
+    from pavemap.ingest.kitti import import_kitti
 
     seq = import_kitti(root, sequence, out, camera=camera, start=start, stop=stop, stride=stride, lidar=lidar,
                        geo=_geo(str(oxts) if oxts else None, None, geo_origin, oxts_first, gps_lever_arm))
@@ -220,11 +220,12 @@ def folder_cmd(
     """Own drive: images + cameras.json + poses.csv (or --poses sfm) → sequence folder.
 
     GPS: lat, lon (optional alt, heading) columns in poses.csv, or --gps FILE|exif; or --geo-origin by hand."""
-    from pavemap.io.folder import import_folder
+    from pavemap.ingest.folder import import_folder
 
     seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height,
                         geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm), ego_mask=ego_mask,
-                        refine_intrinsics=refine_intrinsics, fps=fps)
+                        refine_intrinsics=refine_intrinsics, fps=fps,
+                        movers=_movers(poses, segmenter, segmenter_weights, no_semantics, device))
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device,
                                   segmenter_weights))
 
@@ -250,12 +251,24 @@ def video_cmd(
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """A video of one camera → frames at --fps with poses from a CSV or SfM → sequence folder."""
-    from pavemap.io.folder import import_video
+    from pavemap.ingest.video import import_video
 
     seq = import_video(video, cameras, poses, out, fps=_fps(fps), start=start, stop=stop, max_frames=max_frames,
-                       camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm))
+                       camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm),
+                       movers=_movers(poses, segmenter, segmenter_weights, no_semantics, device))
     _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device,
                                   segmenter_weights))
+
+
+def _movers(poses: str, segmenter: str | None, weights: Path | None, no_semantics: bool, device: str):  # noqa: ANN202
+    """With ``--poses sfm``: the segmenter's vehicle and people masks for SfM (said on the console), else None."""
+    if str(poses).lower() != "sfm":
+        return None
+    from pavemap.segment.movers import movable_masks
+
+    masks, said = movable_masks("none" if no_semantics else (segmenter or "auto"), weights, device)
+    typer.echo(said)
+    return masks
 
 
 def _fps(text: str) -> float | str | None:

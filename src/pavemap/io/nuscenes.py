@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
+from pavemap.geometry.valid import check_intrinsics
 from pavemap.io.folder import DEFAULT_CLASSES, copy_image, image_size, make_pose, quat_to_rot
-from pavemap.io.sequence import SequenceError, check_intrinsics, write_sequence
+from pavemap.io.sequence import SequenceError, write_sequence
 from pavemap.types import Camera, Frame, GeoOrigin, SemanticClass, Sequence, View
 
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")

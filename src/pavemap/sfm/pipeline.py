@@ -32,6 +32,7 @@ import logging
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,7 @@ import numpy as np
 from pavemap.errors import PavemapError
 from pavemap.geometry.road_height import camera_heights
 from pavemap.sfm.checks import SfmChecks, check_sfm, select_keyframes
+from pavemap.sfm.colmap import colmap_model, prepare_images
 from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_flags
 from pavemap.sfm.planar import planar_result
 from pavemap.sfm.report import write_sfm_report
@@ -52,115 +54,13 @@ log = logging.getLogger(__name__)
 
 
 
-def _colmap_model(pycolmap, work: Path, image_dir: Path, names: list[str], camera: Camera, mask: np.ndarray | None,
-                  o: dict):
-    """Features (masked), sequential matching and incremental mapping → the largest model, or None."""
-    db = work / "database.db"
-    if db.exists():
-        db.unlink()
-    K = camera.K
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "PINHOLE"
-    reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2] + 0.5},{K[1, 2] + 0.5}"  # COLMAP: pixel corner origin
-    if mask is not None and mask.any():
-        from pavemap.io.egomask import colmap_mask
-
-        reader.camera_mask_path = str(colmap_mask(mask, work / "ego_mask.png"))
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = o["num_threads"]
-    extraction.sift.max_num_features = o["max_features"]
-    # road surfaces are low-contrast: a lower peak threshold keeps their (few) features
-    extraction.sift.peak_threshold = o["peak_threshold"]
-    extraction.use_gpu = False
-    pycolmap.extract_features(work / "database.db", image_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
-    pairing = pycolmap.SequentialPairingOptions()
-    pairing.overlap = o["overlap"]
-    pairing.quadratic_overlap = True
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = o["num_threads"]
-    matching.use_gpu = False
-    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = o["num_threads"]
-    opts.ba_refine_focal_length = False  # refined once at the end, if at all: early refinement drifts
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    opts.random_seed = o["seed"]
-    opts.multiple_models = True  # a bad first model must not end the search; the largest is kept
-    # a car moves along its viewing direction: accept forward-motion initial pairs with small angles
-    opts.mapper.init_max_forward_motion = 1.0
-    rec = None
-    # a small initial angle starts forward motion; if its model stays small, ask for a wider pair
-    for angle in (o["init_min_tri_angle"], 2 * o["init_min_tri_angle"], 4 * o["init_min_tri_angle"]):
-        opts.mapper.init_min_tri_angle = angle
-        shutil.rmtree(work / "sparse", ignore_errors=True)
-        models = pycolmap.incremental_mapping(db, image_dir, work / "sparse", options=opts)
-        best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
-        if best is not None and (rec is None or best.num_reg_images() > rec.num_reg_images()):
-            rec = best
-        if rec is not None and rec.num_reg_images() >= o["min_share"] * len(names):
-            break
-        log.info("SfM: init angle %.1f° registered %d of %d; retrying", angle,
-                 0 if rec is None else rec.num_reg_images(), len(names))
-    if rec is None:
-        return None
-    if o["refine_intrinsics"]:
-        rec = _refine_intrinsics(pycolmap, rec, o)
-    return rec
-
-
-def _refine_intrinsics(pycolmap, rec, o: dict):
-    """Bundle adjustment with focal length and principal point free, on a copy; adopted only when sane.
-
-    Forward motion constrains the focal length weakly (it trades against depth), so a refinement that
-    moves the focal length by more than ``max_focal_change`` (or the principal point by more than 5 % of
-    the image) or does not lower the reprojection error is reported and rejected.
-    """
-    trial = pycolmap.Reconstruction(rec)
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = True
-    ba.refine_principal_point = True
-    ba.refine_extra_params = False
-    pycolmap.bundle_adjustment(trial, ba)
-    c0 = next(iter(rec.cameras.values()))
-    c1 = next(iter(trial.cameras.values()))
-    p0, p1 = np.asarray(c0.params[:4], float), np.asarray(c1.params[:4], float)
-    e0, e1 = rec.compute_mean_reprojection_error(), trial.compute_mean_reprojection_error()
-    df = abs(p1[0] / p0[0] - 1.0)
-    dpp = float(np.abs(p1[2:4] - p0[2:4]).max()) / max(c0.width, c0.height)
-    ok = df <= o["max_focal_change"] and dpp <= 0.05 and e1 <= e0
-    o["intrinsics"] = {"fx": round(p1[0], 2), "fy": round(p1[1], 2), "cx": round(p1[2] - 0.5, 2),
-                       "cy": round(p1[3] - 0.5, 2), "focal_change": round(df, 4), "reproj_px": [round(e0, 3),
-                       round(e1, 3)], "adopted": bool(ok)}
-    log.info("SfM intrinsics refinement: %s", o["intrinsics"])
-    return trial if ok else rec
-
-
-def _prepare_images(images: list[Path], work: Path) -> tuple[Path, list[str]]:
-    """One folder pycolmap can read and the image names in it (links when the images are spread out)."""
-    folders = {p.parent.resolve() for p in images}
-    if len(folders) == 1:
-        return folders.pop(), [p.name for p in images]
-    image_dir = work / "images"
-    image_dir.mkdir(exist_ok=True)
-    names = []
-    for i, p in enumerate(images):
-        name = f"{i:06d}{p.suffix.lower()}"
-        if not (image_dir / name).exists():
-            os.symlink(p.resolve(), image_dir / name)
-        names.append(name)
-    return image_dir, names
-
-
 def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, workdir: str | os.PathLike | None = None,
               overlap: int = 10, num_threads: int = 1, max_features: int = 8192, min_registered: float = 0.0,
               seed: int = 0, peak_threshold: float = 0.003, verbose: bool = False, ego_mask: np.ndarray | None = None,
               refine_intrinsics: bool = False, min_parallax: float = 0.002, init_min_tri_angle: float = 2.0,
               checks: SfmChecks | None = None, dense_scale: bool = True, road_steps: bool = True,
               times: np.ndarray | None = None, limits: PartLimits | None = None,
-              method: str = "auto") -> SfmResult:
+              method: str = "auto", movers: Callable[[Path], np.ndarray | None] | None = None) -> SfmResult:
     """Metric z-up camera-to-world poses (N, 4, 4) for ``images`` (video order) of one ``camera``.
 
     ``ego_mask`` (H, W) bool, True on the ego vehicle: no features there. ``refine_intrinsics``: the
@@ -209,7 +109,7 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     masked = ego_mask is not None and ego_mask.any()
     hint = "too little texture or motion?" if masked else "if the ego vehicle (bonnet) is in view, give --ego-mask"
     try:
-        image_dir, all_names = _prepare_images(images, work)
+        image_dir, all_names = prepare_images(images, work)
         names = [n for n, k in zip(all_names, keyframes, strict=True) if k]
         o = {"num_threads": num_threads, "max_features": max_features, "peak_threshold": peak_threshold,
              "overlap": overlap, "seed": seed, "init_min_tri_angle": init_min_tri_angle,
@@ -219,7 +119,9 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
             raise PavemapError(f"the camera hardly moves: only {int(keyframes.sum())} of {len(images)} frames show "
                                f"parallax of {min_parallax:.1%} of the image width or more against the frame before "
                                f"(need {limits.min_frames}; a parked car, or a frame rate far above the motion)")
-        rec = _colmap_model(pycolmap, work, image_dir, names, camera, ego_mask, o) if method != "planar" else None
+        masks = _mover_masks(movers, images, all_names, keyframes, ego_mask, work, info) if movers else None
+        o["mask_dir"] = None if masks is None else work / "masks"
+        rec = colmap_model(pycolmap, work, image_dir, names, camera, ego_mask, o) if method != "planar" else None
         res = None
         try:
             if method == "planar":
@@ -237,16 +139,18 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
             if method == "auto":
                 log.warning("SfM: %s; following the car's planar motion instead", e)
             info["sfm_failure"] = str(e)
-            res = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info)
+            res = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info,
+                                masks=masks)
         if "intrinsics" in o:
             res.info["intrinsics_refinement"] = o["intrinsics"]
         _set_scale(res, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
         if method == "auto" and res.info.get("method") == "pycolmap SfM" and res.info["steps"]["repaired"]:
             res = _better_of(res, images, keyframes, camera, camera_height, ego_mask, limits, road_steps,
-                             dense_scale, hint)
+                             dense_scale, hint, masks)
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
                                        checks, hint, None if times is None else np.asarray(times)[res.registered])
         fill_between_keyframes(res, keyframes)
+        res.info["registered"] = int(res.registered.sum())  # with the frames posed between keyframes
         res.info["status"] = "ok"
         log.info("SfM: %s", {k: v for k, v in res.info.items() if not k.startswith("_")})
         return res
@@ -285,6 +189,29 @@ def _set_scale(res: SfmResult, images: list[Path], camera: Camera, camera_height
             f"dense road matching: {dense.get('reason') or 'not run'} ({hint})")
 
 
+def _mover_masks(movers: Callable[[Path], np.ndarray | None], images: list[Path], names: list[str],
+                 keyframes: np.ndarray, ego: np.ndarray | None, work: Path, info: dict) -> list[Path | None]:
+    """``work/masks/<name>.png`` for each keyframe (COLMAP's per-image masks: white = match here; black = the
+    ego vehicle and what ``movers`` marks), the list of them by image (None for frames that are not keyframes),
+    and ``info["movers"]``: how many frames had masks and the mean share masked."""
+    from PIL import Image
+
+    (work / "masks").mkdir(exist_ok=True)
+    out: list[Path | None] = [None] * len(images)
+    shares = []
+    for i in np.flatnonzero(keyframes):
+        m = movers(images[i])
+        bad = np.zeros(Image.open(images[i]).size[::-1], bool) if m is None else m.copy()
+        if m is not None:
+            shares.append(float(m.mean()))
+        if ego is not None and ego.shape == bad.shape:
+            bad |= ego
+        out[i] = work / "masks" / f"{names[i]}.png"
+        Image.fromarray(np.where(bad, 0, 255).astype(np.uint8)).save(out[i])
+    info["movers"] = {"frames_masked": len(shares), "mean_share": round(float(np.mean(shares)), 4) if shares else 0.0}
+    return out
+
+
 def _road_share(res: SfmResult) -> float:
     """Share of a path's steps whose length the road's image motion measured (trusted): how well the road, the
     one thing both methods are judged on without truth, agrees with the path's rotations and directions."""
@@ -294,14 +221,15 @@ def _road_share(res: SfmResult) -> float:
 
 def _better_of(res: SfmResult, images: list[Path], keyframes: np.ndarray, camera: Camera, camera_height: float,
                ego_mask: np.ndarray | None, limits: PartLimits, road_steps: bool, dense_scale: bool,
-               hint: str) -> SfmResult:
+               hint: str, masks: list[Path | None] | None = None) -> SfmResult:
     """COLMAP's path needed steps repaired onto the car's heading: the car's planar motion is tried too and the
     path whose steps the road measured more often is kept (COLMAP on a tie); ``info["alternatives"]`` says
     what each scored. (A synthetic stop-and-go: COLMAP 2.2 % off its true path after three repairs, the
     planar motion 0.9 %.)"""
     base = {k: v for k, v in res.info.items() if k in ("images", "keyframes", "camera_height_m", "keyframe_index")}
     try:
-        alt = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, dict(base))
+        alt = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, dict(base),
+                            masks=masks)
         _set_scale(alt, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
     except PavemapError as e:
         res.info["alternatives"] = {"planar motion": f"refused: {e}"}

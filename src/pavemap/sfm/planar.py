@@ -61,8 +61,10 @@ class PairMotion:
     sign: int
 
 
-def _features(images: list[Path], K: np.ndarray, width: int, ego: np.ndarray | None, n: int):  # noqa: ANN202
-    """Keypoints (pixels of the full image) and descriptors of each image, and K."""
+def _features(images: list[Path], K: np.ndarray, width: int, ego: np.ndarray | None, n: int,  # noqa: ANN202
+              masks: list[Path | None] | None = None):
+    """Keypoints (pixels at the matching width) and descriptors of each image; ``ego`` (H, W) True = ego vehicle,
+    ``masks`` per image a PNG whose black pixels are left out (a vehicle that moves), or None."""
     import cv2
 
     from pavemap.io.sequence import load_gray
@@ -76,6 +78,11 @@ def _features(images: list[Path], K: np.ndarray, width: int, ego: np.ndarray | N
         if ego is not None:
             m = (cv2.resize((~ego).astype(np.uint8), (g.shape[1], g.shape[0]), interpolation=cv2.INTER_NEAREST)
                  * 255)
+        mp = masks[len(out)] if masks is not None else None
+        if mp is not None:
+            own = cv2.resize(cv2.imread(str(mp), cv2.IMREAD_GRAYSCALE), (g.shape[1], g.shape[0]),
+                             interpolation=cv2.INTER_NEAREST)
+            m = own if m is None else np.minimum(m, own)
         kp, des = sift.detectAndCompute(g, m)
         full = np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2)
         out.append((full, des, s))
@@ -228,16 +235,18 @@ def _depths(A: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def planar_motion(images: list[Path], camera: Camera, ego_mask: np.ndarray | None = None,
-                  cfg: PlanarConfig | None = None) -> tuple[np.ndarray, list[PairMotion], dict]:
+                  cfg: PlanarConfig | None = None, masks: list[Path | None] | None = None
+                  ) -> tuple[np.ndarray, list[PairMotion], dict]:
     """World camera-to-world poses (N, 4, 4) of ``images`` (video order) with **unit** steps along the car's
     arcs (z up, the camera 0 m over the road: lengths and height come from the road afterwards), the pairs'
     motions (N-1) and what was measured (``mount``, ``reverse``, ``yaw_deg`` per step).
 
-    A pair with too few inliers gets no yaw (NaN): the path is cut there by the caller."""
+    A pair with too few inliers gets no yaw (NaN): the path is cut there by the caller. ``masks``: per image a PNG
+    of the pixels to match (black: a vehicle that moves), or None."""
     cfg = cfg or PlanarConfig()
     K = camera.K.astype(np.float64)
     width = min(cfg.width, camera.width)
-    feats = _features(images, K, width, ego_mask, cfg.features)
+    feats = _features(images, K, width, ego_mask, cfg.features, masks)
     s = width / camera.width
     Ks = K.copy()
     Ks[:2] *= s
@@ -266,15 +275,16 @@ def planar_motion(images: list[Path], camera: Camera, ego_mask: np.ndarray | Non
 
 
 def planar_result(images: list[Path], keyframes: np.ndarray, camera: Camera, camera_height: float,
-                  ego_mask: np.ndarray | None, min_frames: int, info: dict, cfg: PlanarConfig | None = None
-                  ) -> SfmResult:
+                  ego_mask: np.ndarray | None, min_frames: int, info: dict, cfg: PlanarConfig | None = None,
+                  masks: list[Path | None] | None = None) -> SfmResult:
     """An :class:`SfmResult` from the car's planar motion over the keyframes (unit steps, the camera
     ``camera_height`` m over the road at z = 0; the road sets the step lengths afterwards).
 
     The path is cut where a pair had too few matches to measure its yaw; the longest part is kept and the
     other frames are named in ``info["dropped"]``. Raises PavemapError when no part of ``min_frames`` is left."""
     kf = np.flatnonzero(keyframes)
-    T, motions, pinfo = planar_motion([images[i] for i in kf], camera, ego_mask, cfg)
+    T, motions, pinfo = planar_motion([images[i] for i in kf], camera, ego_mask, cfg,
+                                      None if masks is None else [masks[i] for i in kf])
     info["planar"] = pinfo
     ok_step = np.array([np.isfinite(m.yaw) for m in motions], dtype=bool)
     # parts: runs of keyframes joined by measured steps
