@@ -61,8 +61,10 @@ def make_venv(root: Path, wheel: Path) -> Path:
     deps = [p for p in {sysconfig.get_paths()["purelib"], *site.getsitepackages()} if Path(p).is_dir()]
     # one line per folder; the editable install's .pth there is NOT processed (only site dirs' .pth are)
     (purelib / "zz_pavemap_test_deps.pth").write_text("".join(f"{p}\n" for p in deps))
+    # without PYTHONPATH: a source tree on it would make pip see pavemap as installed already
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
     r = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q", "--no-deps", "--no-index",
-                        str(wheel)], capture_output=True, text=True, timeout=300)
+                        str(wheel)], capture_output=True, text=True, timeout=300, env=env)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     return root / "bin"
 
