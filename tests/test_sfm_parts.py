@@ -307,3 +307,23 @@ def test_sfm_masks_what_moves(turn_drive, tmp_path):
         pytest.skip(said)
     m = masks(sorted(images.iterdir())[0])  # the synthetic world's parked cars, if any, are masked; no road
     assert m is not None and m.shape == (188, 620) and m.mean() < 0.5
+
+
+@pytest.mark.parametrize(("yaw_deg", "sign"), [(0.0, 1), (7.5, 1), (-12.0, 1), (5.0, -1)])
+def test_arc_model_recovers_a_step_yaw_and_its_direction(yaw_deg, sign):
+    """One step of a car on an arc, seen as matched bearings (car frame): the 1D search finds its yaw to a tenth
+    of a degree and the depths say forwards or reversing."""
+    from pavemap.sfm.planar import PlanarConfig, _rz, pair_yaw
+
+    rng = np.random.default_rng(3)
+    th = np.radians(yaw_deg)
+    X = np.c_[rng.uniform(5, 40, 300), rng.uniform(-15, 15, 300), rng.uniform(-1.5, 6, 300)]  # ahead of the car
+    t = sign * 3.0 * np.array([np.cos(th / 2), np.sin(th / 2), 0.0])  # a 3 m step along the chord
+    # sign -1: the car reverses (or the frames are numbered backwards) while the camera looks ahead
+    X2 = (X - t) @ _rz(np.array(th))  # the points in the second car frame: Rz(th)^T (X - t)
+    b1 = X / np.linalg.norm(X, axis=1, keepdims=True)
+    b2 = X2 / np.linalg.norm(X2, axis=1, keepdims=True)
+    b2 += rng.normal(0, 0.3 / 1000, b2.shape)  # 0.3 px of noise at f = 1000 px
+    m = pair_yaw(b1, b2 / np.linalg.norm(b2, axis=1, keepdims=True), PlanarConfig(), 1000.0)
+    assert np.degrees(m.yaw) == pytest.approx(yaw_deg, abs=0.1)
+    assert m.sign == sign and m.inliers > 250
