@@ -226,7 +226,8 @@ def _better_of(res: SfmResult, images: list[Path], keyframes: np.ndarray, camera
     path whose steps the road measured more often is kept (COLMAP on a tie); ``info["alternatives"]`` says
     what each scored. (A synthetic stop-and-go: COLMAP 2.2 % off its true path after three repairs, the
     planar motion 0.9 %.)"""
-    base = {k: v for k, v in res.info.items() if k in ("images", "keyframes", "camera_height_m", "keyframe_index")}
+    base = {k: v for k, v in res.info.items()
+            if k in ("images", "keyframes", "camera_height_m", "keyframe_index", "movers")}
     try:
         alt = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, dict(base),
                             masks=masks)
