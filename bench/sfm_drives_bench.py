@@ -23,17 +23,6 @@ import numpy as np
 OUT = Path(__file__).resolve().parent / "results" / "sfm_drives.json"
 
 
-def turn_path(step: float = 4.0, straight: int = 6, radius: float = 15.0, arc_steps: int = 6) -> np.ndarray:
-    """(F, 3) camera centres: straight, a 90 deg left turn of ``radius`` m, straight; ``step`` m per frame."""
-    pts = [np.zeros(2)]
-    pts += [np.array([step * (k + 1), 0.0]) for k in range(straight)]
-    c = pts[-1] + [0.0, radius]
-    pts += [c + radius * np.array([np.cos(a), np.sin(a)])
-            for a in -np.pi / 2 + np.pi / 2 * np.arange(1, arc_steps + 1) / arc_steps]
-    pts += [pts[-1] + step * (k + 1) * np.array([0.0, 1.0]) for k in range(straight)]
-    return np.c_[np.array(pts), np.zeros(len(pts))]
-
-
 def stop_and_go_path() -> np.ndarray:
     """(F, 3): 4 m steps, slowing to a stop of 4 frames (2 s), then away again, on a gentle curve."""
     steps = [4.0] * 5 + [2.5, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 2.5] + [4.0] * 5
@@ -94,6 +83,8 @@ def run_drive(truth, method: str) -> dict:  # noqa: ANN001
 
 
 def main() -> None:
+    from pavemap.synth.trajectory import turn_path
+
     drives = {"turn_90deg": turn_path(), "stop_and_go": stop_and_go_path(), "straight": straight_path()}
     presets = sys.argv[1:] or ["kitti-like", "nuscenes-like"]
     out: dict = {"what": __doc__.split("\n")[0], "commit": os.popen("git rev-parse --short HEAD").read().strip(),

@@ -17,20 +17,9 @@ from PIL import Image
 
 from pavemap.errors import PavemapError
 from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_flags
+from pavemap.synth.trajectory import turn_path
 
 MOUNT_HEIGHT = 1.65  # the kitti-like rig's camera height over the road
-
-
-def turn_path(step: float = 4.0, straight: int = 6, radius: float = 15.0, arc_steps: int = 6) -> np.ndarray:
-    """(F, 3) camera centres of a drive at 2 Hz and 8 m/s: straight, a 90 deg left turn, straight."""
-    pts = [np.zeros(2)]
-    pts += [np.array([step * (k + 1), 0.0]) for k in range(straight)]
-    c = pts[-1] + [0.0, radius]
-    pts += [c + radius * np.array([np.cos(a), np.sin(a)])
-            for a in -np.pi / 2 + np.pi / 2 * np.arange(1, arc_steps + 1) / arc_steps]
-    pts += [pts[-1] + step * (k + 1) * np.array([0.0, 1.0]) for k in range(straight)]
-    xy = np.array(pts)
-    return np.c_[xy, np.zeros(len(xy))]
 
 
 def similarity_rmse_pct(est: np.ndarray, gt: np.ndarray) -> float:

@@ -1,6 +1,6 @@
 """The one device resolver: every stage and command turns a user's ``--device`` into a torch device here.
 
-Behaviour (documented in the README): ``auto`` picks ``cuda`` when torch sees a GPU, else ``cpu``;
+Behaviour (documented in docs/guide/configuration.md): ``auto`` picks ``cuda`` when torch sees a GPU, else ``cpu``;
 ``cpu``; ``cuda`` / ``gpu`` means ``cuda:0``; ``cuda:N`` or a bare ``N`` names a GPU. Asking for a GPU
 that torch does not see, or an unknown name, is a :class:`PavemapError` (never a silent fallback:
 a run that asked for CUDA and ran on the CPU would report timings that mean something else).

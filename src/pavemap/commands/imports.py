@@ -199,7 +199,7 @@ def nuscenes_cmd(
 def folder_cmd(
     images: Path = typer.Argument(..., help="Images folder (files, or one subfolder per camera)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output sequence folder."),
-    cameras: Path = typer.Option(..., "--cameras", help="cameras.json (see README: own drive)."),
+    cameras: Path = typer.Option(..., "--cameras", help="cameras.json (see docs/tutorials/own-video.md)."),
     poses: str = typer.Option(..., "--poses", help="poses.csv, or 'sfm' to estimate them with pycolmap."),
     camera_height: float = typer.Option(1.5, help="Camera height above the road, metres (SfM scale, fallback)."),
     name: str | None = typer.Option(None, help="Sequence name (default: the folder name)."),

@@ -10,7 +10,7 @@ import typer
 from pavemap.commands import options as opt
 
 # The demo scene: nuScenes-like rig (6 cameras) on a shorter drive at quarter resolution,
-# sized so synth + mesh + fusion + report finish in well under a minute on a 2-core CPU (20 s at the README's commit).
+# sized so synth + mesh + fusion + report finish in well under a minute on a 2-core CPU (20 s at docs/history's commit).
 DEMO_FRAMES = 16
 DEMO_SCALE = 0.25
 DEMO_RENDER_SCALE = 0.5  # of the already small demo images: enough pixels per vertex for the bakes
@@ -19,7 +19,7 @@ DEMO_RENDER_SCALE = 0.5  # of the already small demo images: enough pixels per v
 def register(app: typer.Typer) -> None:
     @app.command()
     def run(
-        seq: Path = typer.Argument(..., help="Sequence folder (see README: the sequence folder)."),
+        seq: Path = typer.Argument(..., help="Sequence folder (see docs/guide/sequence-folder.md)."),
         out: Path = typer.Option(..., "--out", "-o", help="Run folder for all outputs."),
         config: str | None = opt.CONFIG,
         sets: list[str] | None = opt.SET,

@@ -30,7 +30,7 @@ FORMAT = "pavemap-defects/1"
 # 1e-8 degree is about 1 mm, like 1e-3 m: well below the 0.1 m mesh resolution
 LONLAT_DECIMALS = 8
 METRE_DECIMALS = 3
-# The one property schema of a defect, in every GeoJSON and CSV pavemap writes (README "Defect schema").
+# The one property schema of a defect, in every GeoJSON and CSV pavemap writes (docs/guide/outputs.md, "Defect schema").
 # (name, type, unit, meaning); the synthetic truth carries the subset it knows (id, cls, code, name,
 # area_m2, length_m, x_m, y_m) plus its own generator fields.
 PROPERTY_SCHEMA: tuple[tuple[str, str, str, str], ...] = (

@@ -3,7 +3,7 @@ reference.
 
 :func:`sweep_scores_numpy` is the reference. It builds every hypothesis's warped patch as arrays of (rows,
 hypotheses, patch pixels): a dozen passes over ~1.5 M-element temporaries per call, then ``cv2.remap``, and was
-the largest part of stage 1 without training (README, "The closed-form stage 1"). The kernel scores one
+the largest part of stage 1 without training (docs/history, "The closed-form stage 1"). The kernel scores one
 (corner, hypothesis) at a time, compiled by numba, on one thread: the patch pixel's depth on the
 hypothesis's plane, its projection into the partner, a bilinear sample, and the zero-mean NCC against the
 reference patch, without temporaries; a hypothesis stops at its first pixel outside the partner (score -1).

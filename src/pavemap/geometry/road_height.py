@@ -77,7 +77,7 @@ def camera_heights(P: np.ndarray, C: np.ndarray, up: np.ndarray, lateral: float 
     one chainage. Why not a plane per camera with a free slope over a radius
     (:func:`pavemap.geometry.triangulate.local_ground`): where the road's points lie metres ahead of a camera,
     or few of them beside the lane (a parked car's sill), that plane's tilt is set by a handful of points and
-    its extrapolation to the camera moves the height (README, "One estimate of the camera height").
+    its extrapolation to the camera moves the height (docs/history, "One estimate of the camera height").
     """
     from pavemap.geometry.chainage import chainage, route_polyline
 

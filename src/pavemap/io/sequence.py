@@ -174,7 +174,7 @@ def read_sequence(root: str | os.PathLike, validate: bool = True) -> Sequence:
     if not is_dir:
         raise SequenceError(root, "is not a folder (expected a sequence folder holding sequence.json)")
     if not file.is_file():
-        raise SequenceError(file, "not found; is this a pavemap sequence folder? (see README: sequence folder)")
+        raise SequenceError(file, "not found; is this a pavemap sequence folder? (see docs/guide/sequence-folder.md)")
     seq = sequence_from_dict(load_json(file), root)
     if validate:
         problems = validate_sequence(seq)

@@ -20,7 +20,7 @@ class MaintenanceConfig:
     - ``floor_sweep``: without a depth layer, measure potholes' floors by a multi-view sweep of the images
       around each (:mod:`pavemap.maintain.floor_sweep`; full-size images); False (default): their depth is not
       measured without depth. Off by default: it measures few potholes, and plain road on the real nuScenes
-      clip read as a dent (README, "Pothole depth from the images").
+      clip read as a dent (docs/history, "Pothole depth from the images").
     """
 
     policy: str = ""

@@ -26,7 +26,7 @@ pothole polygon:
 It reads the images at their stored size: at 620 px wide (half KITTI's size) a pixel row covers 8-11 cm of the
 road at a pothole 7-8 m away and a centimetre of depth moves it by 0.11-0.15 px, below what the floor's texture
 can show; at 1241 px 3-5 cm and 0.22-0.48 px. What it measures against the truth and on the real samples:
-``bench/floor_sweep_bench.py`` and the README's "Pothole depth from the images"; why it is off by default
+``bench/floor_sweep_bench.py`` and docs/history's "Pothole depth from the images"; why it is off by default
 (``maintenance.floor_sweep``) is there too.
 """
 
@@ -58,7 +58,7 @@ class FloorSweepConfig:
     # plain road the nuScenes-like drive read up to 0.11 m of depth with 2 views, 28 mm with 3)
     min_views: int = 3
     # Each view must see the floor where it matters: a farther, flatter view sees a floor only beyond a strip behind
-    # the near rim (depth x range / camera height), and averaging its matches in reads the floor short (the README's
+    # the near rim (depth x range / camera height), and averaging its matches in reads the floor short (docs/history's
     # "Pothole depth from the images"). A view is used only if it sees the middle of the polygon (the rim hides at
     # most half its length) on a floor 5 cm deep, FHWA's medium / high boundary.
     hidden_depth_m: float = 0.05

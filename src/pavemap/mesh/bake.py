@@ -5,7 +5,7 @@ training pixel ``p`` pulls each vertex ``k`` of its triangle towards its colour 
 weight ``b_pk``; by Jensen an upper bound of the rendered L2 loss) are the weighted means
 ``c_k = sum_p b_pk I_p / sum_p b_pk``. One pass over the pixels gives them. Why we need it: sparse Adam
 at the SPEC's rate 0.1 moves each colour by about 0.1 per step and, in the ~140 steps a CPU run affords,
-leaves the colours noisier than the same surface supports (README, stage 1), and vertices that no
+leaves the colours noisier than the same surface supports (docs/history, stage 1), and vertices that no
 training pixel hits keep their N(0, 0.01) start: black spots where a held-out view sees them.
 Those are filled from their neighbours by normalised Gaussian smoothing.
 """
@@ -175,7 +175,7 @@ def bake_colours(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dis
     ``sharpen_iters``: that many Jacobi steps towards the exact least-squares colours, ``c += (sum_p b_pk r_p)
     / (sum_p b_pk)`` with ``r_p`` the pixel's residual on the current colours. The weighted mean blurs
     (each pixel is spread over its triangle's three vertices); the exact solution overfits single pixels
-    (held-out PSNR per number of steps: README, stage 1).
+    (held-out PSNR per number of steps: docs/history, stage 1).
     """
     rgb, support, coloured, _ = bake_exposed(surface, pool, T, max_dist, fill_sigma, batch, sharpen_iters)
     return rgb, support, coloured

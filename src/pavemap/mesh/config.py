@@ -1,6 +1,6 @@
 """Stage-1 configuration (SPEC §1) with the nuScenes-like and KITTI-like presets.
 
-Measured effects of the settings (best values, before / after) are in the README's stage-1 section
+Measured effects of the settings (best values, before / after) are in docs/history's stage-1 section
 and ``bench/results/mesh.json`` / ``pose.json``; the comments here say why a setting exists.
 """
 
@@ -42,7 +42,7 @@ class MeshConfig:
     hidden: int = 128
     # Adam epochs after the closed-form fits (SPEC: 7). 0 by default: the surface comes from the ground points or
     # depth (relief and anchor fits) and the colours, semantics and exposures from the bakes, and on the bench
-    # drives and real KITTI the epochs changed neither measurably at 2-4x the time (README, "The closed-form
+    # drives and real KITTI the epochs changed neither measurably at 2-4x the time (docs/history, "The closed-form
     # stage 1"). 7 runs the SPEC's training on top; pose refinement's joint Adam steps need epochs too.
     epochs: int = 0
     lr_rgb: float = 0.1
@@ -128,7 +128,7 @@ class MeshConfig:
     init_relief: ReliefMethod = "road"
     # After the initial bake gives the vertices their classes, fit the road relief again with the surface free
     # to step between road-class vertices and the others (a kerb; pavemap.mesh.relief.fit_relief's side_q):
-    # the smooth fit rounded a 12 cm kerb off over a metre on either side (README, geometry without LiDAR).
+    # the smooth fit rounded a 12 cm kerb off over a metre on either side (docs/history, geometry without LiDAR).
     kerb_steps: bool = True
     # The share of a vertex's semantic votes for other classes that puts it off the road for the kerb refit
     # (nuScenes-like height RMSE over observed vertices 2.14 / 1.93 / 2.11 cm at 0.5 / 0.7 / 0.85).
@@ -186,7 +186,7 @@ class MeshConfig:
     # 2 x ``segment_overlap_m`` or more is reconstructed there by the earlier pass's segments only.
     segment_revisit_m: float = 10.0
     # ... one of them every this many metres along its pass (0: all): the own pass already sees the road every
-    # metre, and every revisit view costs stage 1 as much as an own one (see the README's long-drive bench).
+    # metre, and every revisit view costs stage 1 as much as an own one (see the long-drive bench, docs/history).
     segment_revisit_spacing_m: float = 1.5
     # A standing vehicle: frames within this distance (m) of the last frame kept add nothing but memory.
     segment_min_step_m: float = 0.1

@@ -10,7 +10,7 @@ matches the road 20-60 m ahead of the path's ends into partners 2 and 4 m on, th
 mesh over the road the last frames see is observed too (issue 12 item 4). It is exact for a locally flat
 road, immune to exposure changes between frames, and rejects patches whose NCC peak is flat or repeated
 along the line (an edge running with the epipolar line: lane markings in forward motion; why not pyramidal
-LK: README, Geometry without LiDAR). The prior camera height only centres the search; triangulation
+LK: docs/history, Geometry without LiDAR). The prior camera height only centres the search; triangulation
 (:mod:`pavemap.geometry.triangulate`) uses the matched pixels and the poses. The stage-1 side (camera height,
 sparse depth, self-check) is :mod:`pavemap.mesh.geometry`.
 """

@@ -191,7 +191,7 @@ def contradicted(a: ViewData, others: list[ViewData], corners: np.ndarray, tau: 
     that did not match it (``matched`` (N, K) bool) and sees the spot. The static road scores there about as
     it did where it matched; a moving vehicle's flank, matched between two neighbouring frames, does not. A view
     whose semantics or ego mask put something else there counts too: leaving those out kept points that were
-    wrong (README, "Points on moving vehicles")."""
+    wrong (docs/history, "Points on moving vehicles")."""
     rows_all = np.flatnonzero(np.isfinite(tau))
     best = np.full(len(corners), -np.inf)  # the best NCC over the views that see it (-inf: none does)
     for k, b in enumerate(others):

@@ -2,7 +2,7 @@
 
 Why not only Adam (SPEC's joint refinement): a training step samples pixels from all views at once, so
 each view's pose gradient comes from a few dozen pixels; Adam then moves every pose by ~lr per step in a
-noisy direction and the refinement stalls near its start (README: pose refinement). Here each
+noisy direction and the refinement stalls near its start (docs/history: pose refinement). Here each
 view is aligned on thousands of its own pixels by damped Gauss-Newton (direct image alignment, as in
 photometric visual odometry): residuals are the pixel colour minus the baked texture where its ray meets
 the surface, and, where LiDAR depth exists, the rendered minus the measured depth in height units. The

@@ -20,7 +20,7 @@ drives (initial surface, observed vertices): nuScenes-like 5.6 -> 2.5 cm RMSE, k
 Points farther off than ``reject_m`` (and ``reject_k`` robust sigmas) after a round leave the next one: Huber's
 linear tail let two points 40 cm high lift 8 m of road by 6-8 cm. With the vertices' classes (``side_q``) the
 bending and slope between road and off-road nodes nearly vanish, so a kerb stays a step where forward cameras
-left no point beside it (nuScenes-like, observed vertices, no depth: 2.27 -> 1.93 cm; README, stage 1).
+left no point beside it (nuScenes-like, observed vertices, no depth: 2.27 -> 1.93 cm; docs/history, stage 1).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ class ReliefFit:
     refit_iterations: int = 2  # rounds of a fit that starts from an earlier fit's weights (``state``)
     margin_s: float = 5.0  # the lattice reaches this far beyond the query points along the road ...
     margin_t: float = 4.0  # ... and across it: points just outside the crop still hold its edge
-    max_nodes: int = 4_000_000  # a longer drive is cut into segments before stage 1 (see the README)
+    max_nodes: int = 4_000_000  # a longer drive is cut into segments before stage 1 (see docs/guide/long-drives.md)
     # a point farther off the fit than both of these after a round is not ground (weight 0 in the next): a
     # car's bonnet, a mismatch; relative too, so that noisy points (poses off by decimetres) are not thinned
     reject_m: float = 0.10
@@ -143,7 +143,7 @@ def _solve_spd(M: sp.csr_matrix, b: np.ndarray, ns: int, nt: int, tol: float = 1
 
     The factor is computed in float32 and the solution refined in float64 until the residual is ``tol`` of
     ``|b|`` (mixed-precision iterative refinement; a float32 solve alone is off by up to 1 cm): half the
-    factor's memory and time (README, stage 1); the float64 factor where float32 is not SPD or the
+    factor's memory and time (docs/history, stage 1); the float64 factor where float32 is not SPD or the
     refinement stalls."""
     n = ns * nt
     order = np.arange(n).reshape(ns, nt)

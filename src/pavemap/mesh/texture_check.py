@@ -148,7 +148,7 @@ def check_model_texture(model, mesh: RoadMesh, classes: list[SemanticClass], poo
         where &= np.isin(mesh.labels().cpu().numpy(), [c.id for c in classes if c.road or c.movable])
     keep, out = texture_summary(tc.contested.cpu().numpy() & where, g, cfg.texture_min_patch_m2, int(valid.sum()))
     # a vehicle in every view that saw the road is the majority there and invisible to the check: say how much
-    # of the road's texture rests on too few views to tell (the shared nuScenes clip's bus, README)
+    # of the road's texture rests on too few views to tell (the shared nuScenes clip's bus, docs/history)
     few = where & (tc.seen_by.cpu().numpy() < 2 * max(1, cfg.texture_min_views))
     out["few_views_m2"] = round(float(few.sum()) * g.res * g.res, 2)
     area, patches = out["contested_m2"], out["patches"]

@@ -129,3 +129,20 @@ def on_some_road(w, x: np.ndarray, y: np.ndarray, margin_m: float) -> np.ndarray
     """(N,) bool: points within ``margin_m`` beyond the carriageway of the nearest road."""
     _, t = w.st_at(x, y)
     return np.abs(t) < w.params.width / 2 + margin_m
+
+
+def turn_path(step: float = 4.0, straight: int = 6, radius: float = 15.0, arc_steps: int = 6,
+              angle_deg: float = 90.0) -> np.ndarray:
+    """(F, 3) camera centres of a drive for ``WorldParams.path``: ``straight`` steps of ``step`` m, a left turn of
+    ``angle_deg`` on a ``radius`` m arc in ``arc_steps`` steps, ``straight`` steps again (2 Hz at 8 m/s by
+    default: the SfM tests' and benches' turn)."""
+    pts = [np.zeros(2)]
+    pts += [np.array([step * (k + 1), 0.0]) for k in range(straight)]
+    c = pts[-1] + [0.0, radius]
+    a = np.radians(angle_deg)
+    arc = -np.pi / 2 + a * np.arange(1, arc_steps + 1) / arc_steps
+    pts += [c + radius * np.array([np.cos(u), np.sin(u)]) for u in arc]
+    d = np.array([np.cos(a), np.sin(a)])
+    pts += [pts[-1] + step * (k + 1) * d for k in range(straight)]
+    return np.c_[np.array(pts), np.zeros(len(pts))]
+
