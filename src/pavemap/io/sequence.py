@@ -19,7 +19,7 @@ from pavemap.errors import SequenceError
 from pavemap.geometry.valid import check_intrinsics, check_pose
 from pavemap.io.atomic import atomic_write_json
 from pavemap.io.jsonfile import decode_utf8, load_json, parse_json
-from pavemap.io.schema import check_detection, check_sequence, issues_text
+from pavemap.io.schema import issues_text, parse_detection, parse_sequence
 from pavemap.types import (
     NUM_DEFECT_CLASSES,
     Camera,
@@ -61,62 +61,58 @@ def sequence_from_dict(d: object, root: Path | None = None) -> Sequence:
     file = (root / SEQUENCE_FILE) if root is not None else Path(SEQUENCE_FILE)
     if isinstance(d, dict) and d.get("format") != FORMAT:  # the most useful message for a foreign file
         raise SequenceError(file, f"'format' must be {FORMAT!r}, got {d.get('format')!r}")
-    issues = check_sequence(d)
-    if issues:
+    doc, issues = parse_sequence(d)
+    if doc is None:
         raise SequenceError(file, issues_text(issues))
-    assert isinstance(d, dict)
 
     classes = []
     seen_ids: set[int] = set()
-    for i, c in enumerate(d["classes"]):
-        cid = int(c["id"])
-        if cid in seen_ids:
-            raise SequenceError(file, f"classes[{i}].id: repeats id {cid}")
-        seen_ids.add(cid)
-        classes.append(SemanticClass(cid, c["name"], road=c.get("road", False), movable=c.get("movable", False),
-                                     sky=c.get("sky", False)))
+    for i, c in enumerate(doc.classes):
+        if c.id in seen_ids:
+            raise SequenceError(file, f"classes[{i}].id: repeats id {c.id}")
+        seen_ids.add(c.id)
+        classes.append(SemanticClass(c.id, c.name, road=c.road, movable=c.movable, sky=c.sky))
 
     cameras: dict[str, Camera] = {}
-    for name, c in d["cameras"].items():
-        K = np.asarray(c["K"], dtype=np.float64)
+    for name, cam in doc.cameras.items():
+        K = np.asarray(cam.K, dtype=np.float64)
         why = check_intrinsics(K)
         if why:
             raise SequenceError(file, f"cameras.{name}.K: {why}")
-        cameras[name] = Camera(name, int(c["width"]), int(c["height"]), K, c.get("ego_mask"))
+        cameras[name] = Camera(name, cam.width, cam.height, K, cam.ego_mask)
 
     frames: list[Frame] = []
     last_index: int | None = None
     last_t: float | None = None
-    for fi, f in enumerate(d["frames"]):
+    for fi, f in enumerate(doc.frames):
         where = f"frames[{fi}]"
-        index = int(f["index"])
+        index = f.index
         if last_index is not None and index == last_index:
             raise SequenceError(file, f"{where}.index: repeats frame index {index}")
         if last_index is not None and index < last_index:
             raise SequenceError(file, f"{where}.index: {index} decreases (previous {last_index})")
-        t = float(f.get("timestamp", float(index)))
+        t = f.timestamp if f.timestamp is not None else float(index)
         if last_t is not None and t < last_t:  # pose interpolation, GPS matching and the EMA all assume time order
             raise SequenceError(file, f"{where}.timestamp: {t} is earlier than frame {last_index}'s {last_t}: frames "
                                 "out of order in time (frame indices must follow the capture time)")
         last_index, last_t = index, t
         views: dict[str, View] = {}
-        for cam, v in f["views"].items():
-            vwhere = f"{where}.views.{cam}"
-            if cam not in cameras:
-                raise SequenceError(file, f"{vwhere}: unknown camera {cam!r}; cameras are {sorted(cameras)}")
-            T = np.asarray(v["T_world_cam"], dtype=np.float64)
+        for cam_name, v in f.views.items():
+            vwhere = f"{where}.views.{cam_name}"
+            if cam_name not in cameras:
+                raise SequenceError(file, f"{vwhere}: unknown camera {cam_name!r}; cameras are {sorted(cameras)}")
+            T = np.asarray(v.T_world_cam, dtype=np.float64)
             why = check_pose(T)
             if why:
                 raise SequenceError(file, f"{vwhere}.T_world_cam: {why}")
-            views[cam] = View(cam, v["image"], T, v.get("semantics"), v.get("depth"))
+            views[cam_name] = View(cam_name, v.image, T, v.semantics, v.depth)
         frames.append(Frame(index, t, views))
 
-    geo, geo_origin = d.get("geo_origin"), None
+    geo, geo_origin = doc.geo_origin, None
     if geo is not None:
-        geo_origin = GeoOrigin(lat=float(geo["lat"]), lon=float(geo["lon"]), alt=float(geo.get("alt", 0.0)),
-                               heading_deg=float(geo.get("heading_deg", 90.0)),
-                               georef=geo["georef"] if isinstance(geo.get("georef"), dict) else None)
-    return Sequence(d["name"], classes, cameras, frames, geo_origin, root)
+        geo_origin = GeoOrigin(lat=geo.lat, lon=geo.lon, alt=geo.alt, heading_deg=geo.heading_deg,
+                               georef=geo.georef if isinstance(geo.georef, dict) else None)
+    return Sequence(doc.name, classes, cameras, frames, geo_origin, root)
 
 
 def sequence_to_dict(seq: Sequence) -> dict:
@@ -371,7 +367,7 @@ def save_depth(path: str | os.PathLike, depth_m: np.ndarray) -> None:
 
 
 def read_detections(path: str | os.PathLike) -> list[Detection]:
-    """Read ``detections.jsonl``. A line that breaks the schema (:data:`pavemap.io.schema.DETECTION`)
+    """Read ``detections.jsonl``. A line that breaks the schema (:class:`pavemap.io.schema.DetectionJson`)
     or names an unknown class id raises SequenceError naming the file, the line and the field.
 
     Values that are well-formed but unusable (boxes outside the image, NaN confidence, a
@@ -386,16 +382,12 @@ def read_detections(path: str | os.PathLike) -> list[Detection]:
     for ln, line in enumerate(decode_utf8(data, path).split("\n"), 1):
         if not line.strip():
             continue
-        d = parse_json(line, path, f"line {ln}: ")
-        issues = check_detection(d)
-        if issues:
+        rec, issues = parse_detection(parse_json(line, path, f"line {ln}: "))
+        if rec is None:
             raise SequenceError(path, f"line {ln}: not a detection record: {issues_text(issues)}")
-        assert isinstance(d, dict)
-        cls = int(d["cls"])
-        if not 0 <= cls < NUM_DEFECT_CLASSES:
-            raise SequenceError(path, f"line {ln}: cls: unknown class id {cls} (valid: 0 D00, 1 D10, 2 D20, 3 D40)")
-        box = tuple(float(x) for x in d["box"])
-        dets.append(Detection(int(d["frame"]), d["camera"], box, cls, float(d["conf"])))  # type: ignore[arg-type]
+        if not 0 <= rec.cls < NUM_DEFECT_CLASSES:
+            raise SequenceError(path, f"line {ln}: cls: unknown class id {rec.cls} (valid: 0 D00, 1 D10, 2 D20, 3 D40)")
+        dets.append(Detection(rec.frame, rec.camera, tuple(rec.box), rec.cls, rec.conf))  # type: ignore[arg-type]
     return dets
 
 
