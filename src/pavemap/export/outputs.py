@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -95,6 +96,15 @@ def _copy_mesh(src: Path, dst: Path) -> Path:
     return dst
 
 
+def _figures_extra(figures_extra: dict | None) -> dict:
+    """A copy of :func:`write_outputs`' ``figures_extra``; an unknown key is refused."""
+    extra = dict(figures_extra or {})
+    unknown = set(extra) - {"sweep", "frames", "images"}
+    if unknown:
+        raise PavemapError(f"figures_extra: unknown key(s) {sorted(unknown)}; expected sweep, frames, images")
+    return extra
+
+
 def _sweep_and_frames(extra: dict, seq: Sequence | None, detections: list[dict] | None, output: object | None,
                       want_figures: bool) -> tuple[list | None, list[dict]]:
     """The threshold sweep rows and the views to overlay: given in ``figures_extra`` or derived."""
@@ -162,18 +172,12 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
     Layers: ``defects.geojson`` only with ``geo_origin`` (GeoJSON is WGS84), ``survey.gpkg`` always
     (:mod:`pavemap.export.gis`; CRS ``output.crs``, extra formats ``output.extra_formats``).
     """
-    # matplotlib and rasterio load here, not at import: `import pavemap` stays fast for the CLI
-    from pavemap.export.figures import fig_bev_overview
-    from pavemap.export.geotiff import write_geotiff
-    from pavemap.export.report import write_report
+    from pavemap.export.report import write_report  # loads here, not at import: `import pavemap` stays fast
 
     out = _output_folder(Path(out_dir))
     bev_rgb = _check_bev("bev_rgb", bev_rgb, mesh_grid)
     bev_semantic = _check_bev("bev_semantic", bev_semantic, mesh_grid)
-    extra = dict(figures_extra or {})
-    unknown = set(extra) - {"sweep", "frames", "images"}
-    if unknown:
-        raise PavemapError(f"figures_extra: unknown key(s) {sorted(unknown)}; expected sweep, frames, images")
+    extra = _figures_extra(figures_extra)
     detections = list(detections) if detections is not None else None
     want_figures = bool(_opt(output, "figures", True))
     want_report = bool(_opt(output, "report", True))
@@ -183,8 +187,6 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
         trajectory = seq.trajectory()
     sweep, frames = _sweep_and_frames(extra, seq, detections, output, want_figures)
     done = dict(written or {})
-    paths: dict[str, Path] = {}
-    figs: dict[str, Path] = {}
     steps = 4 + (mesh_path is not None) + want_report + want_figures * (1 + len(frames) + bool(sweep))
     bar = tqdm(total=steps, desc="outputs", unit="file", disable=not progress, leave=False)
 
@@ -193,40 +195,12 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
         bar.update(1)
 
     try:
-        if "defects.geojson" not in done and geo_origin is not None:
-            paths["defects.geojson"] = write_geojson(out / "defects.geojson", instances, geo_origin)
-        if "survey.gpkg" not in done:
-            from pavemap.export.gis import write_gis
-
-            paths.update(write_gis(out, instances, geo_origin=geo_origin, crs=_opt(output, "crs", "auto"), seq=seq,
-                                   formats=tuple(_opt(output, "extra_formats", ())),
-                                   vehicle=_opt(output, "vehicle", "")))
-        step("defect layers")
-        paths["defects.csv"] = write_csv(out / "defects.csv", instances, geo_origin)
-        step("defects.csv")
-        paths["defect_map.tif"] = write_geotiff(out / "defect_map.tif", prob_map, class_maps, grid, geo_origin,
-                                                crs=_opt(output, "crs", "auto"), valid=valid,
-                                                name=seq.name if seq is not None else "")
-        step("defect_map.tif")
-        # PNGs are north-up like any picture: our rows go +y, so flip
-        if bev_rgb is not None:
-            paths["bev_rgb.png"] = write_png(out / "bev_rgb.png", bev_rgb[::-1])
-        if bev_semantic is not None:
-            paths["bev_semantic.png"] = write_png(out / "bev_semantic.png", bev_semantic[::-1])
-        if metrics is not None and "metrics.json" not in done:
-            paths["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
-        step("bev images")
-        if mesh_path is not None:
-            paths["road_mesh.ply"] = _copy_mesh(Path(mesh_path), out / "road_mesh.ply")
-            step("road_mesh.ply")
-        elif (out / "road_mesh.ply").is_file():
-            paths["road_mesh.ply"] = out / "road_mesh.ply"
+        paths = _write_layers(out, done, instances, prob_map, class_maps, grid, geo_origin, output, valid, seq, step)
+        paths.update(_write_images(out, done, bev_rgb, bev_semantic, metrics, mesh_path, step))
+        figs: dict[str, Path] = {}
         if want_figures:
-            figs["Figure 11 layout: BEV RGB, semantics, defects, statistics"] = fig_bev_overview(
-                out / "figures" / "bev_overview.png", bev_rgb, bev_semantic, mesh_grid, instances, metrics,
-                prob_map, grid, title=title)
-            step("figures/bev_overview.png")
-            figs.update(_sweep_and_frame_figures(out / "figures", sweep, frames, detections or [], step))
+            figs.update(_write_figures(out, bev_rgb, bev_semantic, mesh_grid, instances, metrics, prob_map, grid,
+                                       title, sweep, frames, detections or [], step))
         for caption, p in (extra.get("images") or {}).items():
             figs[str(caption)] = Path(p)
         for k, p in figs.items():
@@ -245,6 +219,70 @@ def write_outputs(out_dir: str | os.PathLike, instances: list[DefectInstance], p
     finally:
         bar.close()
     return paths
+
+
+def _write_layers(out: Path, done: dict[str, Path], instances: list[DefectInstance], prob_map: np.ndarray,
+                  class_maps: np.ndarray, grid: GridSpec, geo_origin: GeoOrigin | None, output: object | None,
+                  valid: np.ndarray | None, seq: Sequence | None, step: Callable[[str], None]) -> dict[str, Path]:
+    """The defect layers (GeoJSON with ``geo_origin``, survey.gpkg), defects.csv and defect_map.tif, skipping
+    what ``done`` lists; arrays as :func:`write_outputs` takes them."""
+    from pavemap.export.geotiff import write_geotiff  # rasterio loads here, not at import
+
+    paths: dict[str, Path] = {}
+    if "defects.geojson" not in done and geo_origin is not None:
+        paths["defects.geojson"] = write_geojson(out / "defects.geojson", instances, geo_origin)
+    if "survey.gpkg" not in done:
+        from pavemap.export.gis import write_gis
+
+        paths.update(write_gis(out, instances, geo_origin=geo_origin, crs=_opt(output, "crs", "auto"), seq=seq,
+                               formats=tuple(_opt(output, "extra_formats", ())),
+                               vehicle=_opt(output, "vehicle", "")))
+    step("defect layers")
+    paths["defects.csv"] = write_csv(out / "defects.csv", instances, geo_origin)
+    step("defects.csv")
+    paths["defect_map.tif"] = write_geotiff(out / "defect_map.tif", prob_map, class_maps, grid, geo_origin,
+                                            crs=_opt(output, "crs", "auto"), valid=valid,
+                                            name=seq.name if seq is not None else "")
+    step("defect_map.tif")
+    return paths
+
+
+def _write_images(out: Path, done: dict[str, Path], bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
+                  metrics: dict | None, mesh_path: str | os.PathLike | None,
+                  step: Callable[[str], None]) -> dict[str, Path]:
+    """The BEV PNGs (``bev_rgb`` / ``bev_semantic`` (ny, nx, 3) uint8, rows +y), metrics.json unless ``done``
+    lists it, and the road mesh (copied from ``mesh_path``, or listed when already in ``out``)."""
+    paths: dict[str, Path] = {}
+    # PNGs are north-up like any picture: our rows go +y, so flip
+    if bev_rgb is not None:
+        paths["bev_rgb.png"] = write_png(out / "bev_rgb.png", bev_rgb[::-1])
+    if bev_semantic is not None:
+        paths["bev_semantic.png"] = write_png(out / "bev_semantic.png", bev_semantic[::-1])
+    if metrics is not None and "metrics.json" not in done:
+        paths["metrics.json"] = atomic_write_json(out / "metrics.json", metrics)
+    step("bev images")
+    if mesh_path is not None:
+        paths["road_mesh.ply"] = _copy_mesh(Path(mesh_path), out / "road_mesh.ply")
+        step("road_mesh.ply")
+    elif (out / "road_mesh.ply").is_file():
+        paths["road_mesh.ply"] = out / "road_mesh.ply"
+    return paths
+
+
+def _write_figures(out: Path, bev_rgb: np.ndarray | None, bev_semantic: np.ndarray | None,
+                   mesh_grid: GridSpec | None, instances: list[DefectInstance], metrics: dict | None,
+                   prob_map: np.ndarray, grid: GridSpec, title: str, sweep: list | None, frames: list[dict],
+                   detections: list[dict], step: Callable[[str], None]) -> dict[str, Path]:
+    """figures/: the BEV overview (Figure 11 layout), then the threshold sweep and the frame overlays;
+    {caption: path}."""
+    from pavemap.export.figures import fig_bev_overview  # matplotlib loads here, not at import
+
+    figs = {"Figure 11 layout: BEV RGB, semantics, defects, statistics": fig_bev_overview(
+        out / "figures" / "bev_overview.png", bev_rgb, bev_semantic, mesh_grid, instances, metrics,
+        prob_map, grid, title=title)}
+    step("figures/bev_overview.png")
+    figs.update(_sweep_and_frame_figures(out / "figures", sweep, frames, detections, step))
+    return figs
 
 
 __all__ = ["write_outputs", "write_png"]

