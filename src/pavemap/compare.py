@@ -14,6 +14,7 @@ or its class became a more severe one (D00 < D10 < D20 < D40); otherwise it is *
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -145,20 +146,10 @@ def _classify(a: _Defects, b: _Defects, i: int, j: int, grow_ratio: float) -> tu
     return ("grown" if reasons else "unchanged"), reasons
 
 
-def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | os.PathLike,
-                 match_m: float = 0.5, grow_ratio: float = 1.2) -> dict:
-    """Compare survey A (earlier) with survey B (later); write the changes layer (``changes.geojson`` in lon/lat
-    with geo origins, else ``changes.gpkg`` in the local engineering CRS), changes.png, changes.json.
-
-    ``run_a``/``run_b``: run output folders (holding defects.geojson) or the GeoJSON files themselves.
-    Returns the summary dict that is also written to ``changes.json``.
-    """
-    if not (np.isfinite(match_m) and match_m > 0):
-        raise PavemapError(f"match_m must be a positive distance in metres, got {match_m}")
-    if not (np.isfinite(grow_ratio) and grow_ratio >= 1.0):
-        raise PavemapError(f"grow_ratio must be >= 1, got {grow_ratio}")
-    pa, pb = _defects_geojson(Path(run_a)), _defects_geojson(Path(run_b))
-    la, lb = read_defect_layer(pa), read_defect_layer(pb)
+def _common_frame(la: DefectLayer, lb: DefectLayer) -> tuple[str, Callable | None, list[str]]:
+    """The frame both layers are compared in: ``"lonlat"`` when both have geo origins (B's geometries then
+    move into A's local frame, if their origins differ), else ``"local"`` world metres; (frame, B's
+    geometry -> A's frame or None, warnings)."""
     warnings: list[str] = []
     to_common = None
     if la.geo_origin is not None and lb.geo_origin is not None:
@@ -173,24 +164,33 @@ def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | 
         if (la.geo_origin is None) != (lb.geo_origin is None):
             warnings.append("only one run has a geo origin; both were compared in their local world metres, "
                             "assuming the two runs share one world frame")
-    A, B = _collect(la), _collect(lb, to_common)
-    pairs = match_defects(A, B, match_m)
+    return frame, to_common, warnings
+
+
+def _change_records(A: _Defects, B: _Defects, pairs: list[tuple[int, int, float]],
+                    grow_ratio: float) -> list[tuple[dict, int | None, int | None]]:
+    """(record, index in A or None, index in B or None): the matched ``pairs`` classified, then B's
+    unmatched defects (new), then A's (gone). A record holds change, geometry, id_a, id_b (and for a pair
+    distance_m, reasons)."""
     records = []
     matched_a = {i for i, _, _ in pairs}
     matched_b = {j for _, j, _ in pairs}
-
-    def base(change: str, geom: object) -> dict:
-        return {"change": change, "geometry": geom}
-
     for i, j, d in pairs:
         change, reasons = _classify(A, B, i, j, grow_ratio)
-        r = base(change, B.geoms[j])
-        r.update(id_a=A.ids[i], id_b=B.ids[j], distance_m=round(d, 3), reasons=reasons)
+        r = {"change": change, "geometry": B.geoms[j], "id_a": A.ids[i], "id_b": B.ids[j],
+             "distance_m": round(d, 3), "reasons": reasons}
         records.append((r, i, j))
-    records += [({**base("new", B.geoms[j]), "id_a": None, "id_b": B.ids[j]}, None, j)
+    records += [({"change": "new", "geometry": B.geoms[j], "id_a": None, "id_b": B.ids[j]}, None, j)
                 for j in range(len(B.ids)) if j not in matched_b]
-    records += [({**base("gone", A.geoms[i]), "id_a": A.ids[i], "id_b": None}, i, None)
+    records += [({"change": "gone", "geometry": A.geoms[i], "id_a": A.ids[i], "id_b": None}, i, None)
                 for i in range(len(A.ids)) if i not in matched_a]
+    return records
+
+
+def _change_rows(A: _Defects, B: _Defects, records: list[tuple[dict, int | None, int | None]]
+                 ) -> tuple[list, list[dict]]:
+    """The records in output order (by change, then ids) as (geometries, property rows); each record's
+    geometry moves into the first list (the figure then reads it from A or B)."""
 
     def code(d: _Defects, k: int | None) -> str | None:
         return DEFECT_CODES[d.cls[k]] if k is not None and d.cls[k] >= 0 else None
@@ -214,6 +214,27 @@ def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | 
         if i is not None and j is not None:
             props["area_ratio"] = round(float(B.area[j] / max(A.area[i], _EPS)), 3)
         pair_rows.append(props)
+    return geoms, pair_rows
+
+
+def compare_runs(run_a: str | os.PathLike, run_b: str | os.PathLike, out: str | os.PathLike,
+                 match_m: float = 0.5, grow_ratio: float = 1.2) -> dict:
+    """Compare survey A (earlier) with survey B (later); write the changes layer (``changes.geojson`` in lon/lat
+    with geo origins, else ``changes.gpkg`` in the local engineering CRS), changes.png, changes.json.
+
+    ``run_a``/``run_b``: run output folders (holding defects.geojson) or the GeoJSON files themselves.
+    Returns the summary dict that is also written to ``changes.json``.
+    """
+    if not (np.isfinite(match_m) and match_m > 0):
+        raise PavemapError(f"match_m must be a positive distance in metres, got {match_m}")
+    if not (np.isfinite(grow_ratio) and grow_ratio >= 1.0):
+        raise PavemapError(f"grow_ratio must be >= 1, got {grow_ratio}")
+    pa, pb = _defects_geojson(Path(run_a)), _defects_geojson(Path(run_b))
+    la, lb = read_defect_layer(pa), read_defect_layer(pb)
+    frame, to_common, warnings = _common_frame(la, lb)
+    A, B = _collect(la), _collect(lb, to_common)
+    records = _change_records(A, B, match_defects(A, B, match_m), grow_ratio)
+    geoms, pair_rows = _change_rows(A, B, records)
     counts = {c: sum(p["change"] == c for p in pair_rows) for c in CHANGES}
     out_dir = Path(out)
     try:
