@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import enum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from pavemap.commands import options as opt
 from pavemap.errors import PavemapError
+
+if TYPE_CHECKING:  # the stages load when the command runs, not with the CLI
+    from pavemap.config import RunConfig
+    from pavemap.fuse.core import FusionResult
+    from pavemap.geometry import HeightField
+    from pavemap.types import Sequence
 
 
 class Surface(enum.StrEnum):
@@ -100,34 +107,17 @@ def register(app: typer.Typer) -> None:
             folder.remove_own("metrics.json")  # an earlier result's completion marker, until this one is done
             surf, m = _surface(surface.value, s, mesh)
             result = filter_and_fuse(s, dets, surf, rc.filter, cfg, mesh=m)
-            from pavemap.maintain import assess, load_policy, summary
-            from pavemap.maintain.assessment import survey_inputs
-
-            mc = rc.maintenance  # the same defect schema as `pavemap run` (issue 16)
-            # a detections file: the image's own pixels; sim where the sequence is synthetic (like detector auto)
-            kind = "sim" if (seq / "truth" / "defects.geojson").is_file() else "file"
-            seen = survey_inputs(s, kind, result.metrics, load_policy(mc.policy), tau_conf=rc.filter.tau_conf)
-            result.segments = assess(result.instances, s, surf, result.instance_labels,
-                                     getattr(m, "observed", None) if surface.value in ("mesh", "auto") else None,
-                                     policy=mc.policy, segment_m=mc.segment_m, lane_width_m=mc.lane_width_m,
-                                     samples=getattr(m, "samples", None) if surface.value in ("mesh", "auto") else None,
-                                     floor_sweep=mc.floor_sweep, **seen)
-            result.metrics["maintenance"] = summary(result.instances, result.segments, seen["check"])
+            _assess(result, s, seq, surf, m if surface.value in ("mesh", "auto") else None, rc)
             ev = None
             if truth and (seq / "truth" / "defects.geojson").is_file():
                 from pavemap.evaluate import evaluate
 
                 ev = evaluate(result, seq)
             write_fusion_outputs(out, result, s.geo_origin, evaluation=ev, seq=s, surface=surf, output=rc.output)
-        mt = result.metrics
-        skipped = skipped_text(mt)
+        skipped = skipped_text(result.metrics)
         if skipped:
             typer.echo(skipped)
-        typer.echo(
-            f"{mt['input_detections']} detections: {mt['invalid_detections']} invalid, {mt['below_conf']} below "
-            f"conf, {mt['filtered_detections']} off road (FR {mt['filter_rate']:.1%}), {mt['valid_detections']} "
-            f"valid, MSR {mt['msr']:.1%} -> {len(result.instances)} defects in {out}"
-        )
+        typer.echo(_fuse_line(result.metrics, len(result.instances), out))
         if ev is not None:
             typer.echo(_eval_line(ev))
 
@@ -144,6 +134,31 @@ def register(app: typer.Typer) -> None:
         write_eval(run, ev)
         typer.echo(_eval_line(ev))
         typer.echo(f"-> {run / 'eval.json'}")
+
+
+def _assess(result: FusionResult, s: Sequence, seq: Path, surf: HeightField, mesh: object | None,
+            rc: RunConfig) -> None:
+    """The maintenance assessment of a fused ``result`` (segments and the metrics' ``maintenance``), with the
+    same defect schema as `pavemap run` (issue 16). ``mesh``: the stage-1 mesh when it is the surface (its
+    observed cells and samples), else None."""
+    from pavemap.maintain import assess, load_policy, summary
+    from pavemap.maintain.assessment import survey_inputs
+
+    mc = rc.maintenance
+    # a detections file: the image's own pixels; sim where the sequence is synthetic (like detector auto)
+    kind = "sim" if (seq / "truth" / "defects.geojson").is_file() else "file"
+    seen = survey_inputs(s, kind, result.metrics, load_policy(mc.policy), tau_conf=rc.filter.tau_conf)
+    result.segments = assess(result.instances, s, surf, result.instance_labels, getattr(mesh, "observed", None),
+                             policy=mc.policy, segment_m=mc.segment_m, lane_width_m=mc.lane_width_m,
+                             samples=getattr(mesh, "samples", None), floor_sweep=mc.floor_sweep, **seen)
+    result.metrics["maintenance"] = summary(result.instances, result.segments, seen["check"])
+
+
+def _fuse_line(mt: dict, defects: int, out: Path) -> str:
+    """The one-line summary of a fusion's metrics ``mt``."""
+    return (f"{mt['input_detections']} detections: {mt['invalid_detections']} invalid, {mt['below_conf']} below "
+            f"conf, {mt['filtered_detections']} off road (FR {mt['filter_rate']:.1%}), {mt['valid_detections']} "
+            f"valid, MSR {mt['msr']:.1%} -> {defects} defects in {out}")
 
 
 def _eval_line(ev: dict) -> str:
