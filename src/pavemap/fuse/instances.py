@@ -161,6 +161,24 @@ def _union_axis(n: np.ndarray, m1: np.ndarray, m2: np.ndarray, res: float) -> tu
             float(np.sqrt(12.0 * max(mid + half, 0.0))))
 
 
+def _distinct_detections(lab: np.ndarray, k: int, pair_det: np.ndarray, pair_vid: np.ndarray) -> np.ndarray:
+    """(k + 1,) int: the distinct detections per component of the flat label image ``lab`` (0 background),
+    from the (P,) (detection, vertex) associations ``pair_det`` / ``pair_vid``."""
+    pl = lab[pair_vid] if len(pair_vid) else np.zeros(0, dtype=np.int64)
+    m = pl > 0
+    # 1-D keys: np.unique on rows (axis=0) is an order of magnitude slower.
+    uniq = np.unique(pair_det[m].astype(np.int64) * (k + 1) + pl[m])
+    return np.bincount(uniq % (k + 1), minlength=k + 1)
+
+
+def _max_by(labels: np.ndarray, values: np.ndarray, k: int) -> np.ndarray:
+    """(k + 1,) the largest of ``values`` (N,) per label of ``labels`` (N,) in 0..k, starting from 0 (a label
+    without values gets 0)."""
+    out = np.zeros(k + 1)
+    np.maximum.at(out, labels, values)
+    return out
+
+
 def build_instances(
     shape: tuple[int, int], vertices: np.ndarray, defect: np.ndarray, prob: np.ndarray, counts: np.ndarray,
     sev: np.ndarray, conf: np.ndarray, pair_det: np.ndarray, pair_vid: np.ndarray, x0: float, y0: float,
@@ -194,12 +212,7 @@ def build_instances(
     jj, ii = np.divmod(sel, nx)
     x, y = x0 + ii * res, y0 + jj * res
     cnt = np.bincount(L, minlength=k + 1)
-    # Distinct detections per component.
-    pl = lab[pair_vid] if len(pair_vid) else np.zeros(0, dtype=np.int64)
-    m = pl > 0
-    # 1-D keys: np.unique on rows (axis=0) is an order of magnitude slower.
-    uniq = np.unique(pair_det[m].astype(np.int64) * (k + 1) + pl[m])
-    n_det = np.bincount(uniq % (k + 1), minlength=k + 1)
+    n_det = _distinct_detections(lab, k, pair_det, pair_vid)
     keep = n_det >= min_obs
     keep[0] = False
     if not keep[1:].any():
@@ -218,12 +231,7 @@ def build_instances(
     cls_counts = np.stack([np.bincount(L2, counts[at, c], k2 + 1) for c in range(NUM_DEFECT_CLASSES)], 1)[1:]
     sev_f, conf_f, prob_f = sev[at], conf[at], prob[at]
     sev_mean = np.bincount(L2, sev_f, k2 + 1)[1:] / cnt
-    sev_max = np.zeros(k2 + 1)
-    np.maximum.at(sev_max, L2, sev_f)
-    conf_max = np.zeros(k2 + 1)
-    np.maximum.at(conf_max, L2, conf_f)
-    prob_max = np.zeros(k2 + 1)
-    np.maximum.at(prob_max, L2, prob_f)
+    sev_max, conf_max, prob_max = _max_by(L2, sev_f, k2), _max_by(L2, conf_f, k2), _max_by(L2, prob_f, k2)
     cx = np.bincount(L2, x, k2 + 1)[1:] / cnt
     cy = np.bincount(L2, y, k2 + 1)[1:] / cnt
     length = principal_extent(L2, x, y, k2, res)
