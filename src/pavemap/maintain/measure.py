@@ -211,28 +211,15 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
         plane = np.array([p0[2], -n[0] / n[2], -n[1] / n[2]])
         return _pothole_from_samples(np.asarray(own[0], np.float64), (float(p0[0]), float(p0[1])), plane, sigma,
                                      n_in, int(fv.sum()) * res * res, cfg, "floor-sweep samples (images)")
+    n_inside = 0
     if samples is not None and len(samples):
-        # the samples inside the footprint: grid cells (j0 + row, i0 + col) of the crop
-        si = np.rint((samples[:, 0] - grid[0]) / res).astype(np.int64) - i0
-        sj = np.rint((samples[:, 1] - grid[1]) / res).astype(np.int64) - j0
-        inb = (si >= 0) & (sj >= 0) & (si < fv.shape[1]) & (sj < fv.shape[0])
-        inside, around = np.zeros(len(samples), bool), np.zeros(len(samples), bool)
-        inside[inb] = fv[sj[inb], si[inb]]
-        around[inb] = ring[sj[inb], si[inb]]
-        centre = (grid[0] + (i0 + ci) * res, grid[1] + (j0 + cj) * res)
-        if inside.sum() >= cfg.min_samples:
-            if around.sum() >= cfg.min_ring_samples:  # the plane from the same kind of measurement as the floor
-                a = samples[around]
-                c2, s2, inl2 = robust_plane(a[:, 0] - centre[0], a[:, 1] - centre[1], a[:, 2], cfg.trim_k,
-                                            cfg.iterations, cfg.order)
-                if s2 <= max(3.0 * sigma, 0.01):  # a ring on a kerb or a car's foot: the surface's ring stays
-                    coef, sigma, n_in = c2, s2, int(inl2.sum())
-            return _pothole_from_samples(samples[inside], centre, coef, sigma, n_in, int(fv.sum()) * res * res, cfg)
+        found, n_inside = _pothole_in_samples(samples, fv, ring, (j0, i0), (cj, ci), grid, (coef, sigma, n_in), cfg)
+        if found is not None:
+            return found
     if own_why and not cfg.surface_floor:
         return _not_measurable(f"floor not measured ({own_why})")
     if not cfg.surface_floor:
-        n = 0 if samples is None or not len(samples) else int(inside.sum())
-        return _not_measurable(f"floor not measured ({n} height samples inside it, {cfg.min_samples} needed)"
+        return _not_measurable(f"floor not measured ({n_inside} height samples inside it, {cfg.min_samples} needed)"
                                if samples is not None else "floor not measured (no depth measurements)")
     d = surface_at(coef, (fi - ci) * res, (fj - cj) * res) - zc[fj, fi]  # + below the plane
     dent = d > floor
@@ -246,6 +233,36 @@ def _pothole(iid: int, sl: tuple | None, z: np.ndarray, valid: np.ndarray, obs: 
         "volume_l": round(float(d[dent].sum()) * res * res * 1000.0, 3),
         "depth_sigma_mm": round(sig * 1000.0, 1),
     }
+
+
+def _pothole_in_samples(samples: np.ndarray, fv: np.ndarray, ring: np.ndarray, crop0: tuple[int, int],
+                        c: tuple[float, float], grid: tuple[float, float, float],
+                        fit: tuple[np.ndarray, float, int], cfg: MeasureConfig) -> tuple[dict | None, int]:
+    """Pothole measures from the height ``samples`` (n, 3) world x, y, z inside the footprint ``fv`` (h, w) bool,
+    a crop whose cell (0, 0) is grid cell ``crop0`` (j, i), with the footprint's centre ``c`` (row, col) in it;
+    ``fit`` the surface ring's plane (coef, sigma, inliers). With ``min_ring_samples`` of them in ``ring``
+    (h, w) bool, the plane is refitted on those. (measures, or None with fewer than ``min_samples`` inside;
+    the count inside)."""
+    (j0, i0), (cj, ci), res = crop0, c, grid[2]
+    coef, sigma, n_in = fit
+    # the samples inside the footprint: grid cells (j0 + row, i0 + col) of the crop
+    si = np.rint((samples[:, 0] - grid[0]) / res).astype(np.int64) - i0
+    sj = np.rint((samples[:, 1] - grid[1]) / res).astype(np.int64) - j0
+    inb = (si >= 0) & (sj >= 0) & (si < fv.shape[1]) & (sj < fv.shape[0])
+    inside, around = np.zeros(len(samples), bool), np.zeros(len(samples), bool)
+    inside[inb] = fv[sj[inb], si[inb]]
+    around[inb] = ring[sj[inb], si[inb]]
+    centre = (grid[0] + (i0 + ci) * res, grid[1] + (j0 + cj) * res)
+    if inside.sum() < cfg.min_samples:
+        return None, int(inside.sum())
+    if around.sum() >= cfg.min_ring_samples:  # the plane from the same kind of measurement as the floor
+        a = samples[around]
+        c2, s2, inl2 = robust_plane(a[:, 0] - centre[0], a[:, 1] - centre[1], a[:, 2], cfg.trim_k,
+                                    cfg.iterations, cfg.order)
+        if s2 <= max(3.0 * sigma, 0.01):  # a ring on a kerb or a car's foot: the surface's ring stays
+            coef, sigma, n_in = c2, s2, int(inl2.sum())
+    found = _pothole_from_samples(samples[inside], centre, coef, sigma, n_in, int(fv.sum()) * res * res, cfg)
+    return found, int(inside.sum())
 
 
 def _pothole_from_samples(pts: np.ndarray, centre: tuple[float, float], coef: np.ndarray, sigma: float, n_ring: int,
