@@ -86,6 +86,29 @@ def _camera_chain(nusc, first_sd_token: str, last_sd_token: str) -> list[dict]:
     return out
 
 
+def _chosen_cameras(first_sample: dict, cameras: list[str] | tuple[str, ...] | None, scene: str) -> list[str]:
+    """``cameras`` (default: every camera of the scene, the six of CAMERAS first, in their order); one the
+    scene's first sample lacks is refused."""
+    available = [c for c in CAMERAS if c in first_sample["data"]] + sorted(
+        c for c in first_sample["data"] if c.startswith("CAM") and c not in CAMERAS
+    )
+    chosen = list(cameras) if cameras else available
+    bad = [c for c in chosen if c not in available]
+    if bad:
+        raise PavemapError(f"camera(s) {bad} not in scene {scene}; available: {', '.join(available)}")
+    return chosen
+
+
+def _camera(nusc, name: str, sd: dict, calib_file: Path) -> Camera:  # noqa: ANN001
+    """Camera ``name`` of the sample_data record ``sd`` (size) and its calibrated sensor (K, checked)."""
+    cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+    K = np.asarray(cs["camera_intrinsic"], dtype=np.float64)
+    why = check_intrinsics(K)
+    if why:
+        raise SequenceError(calib_file, f"{name} ({cs['token']}): {why}")
+    return Camera(name, int(sd["width"]), int(sd["height"]), K)
+
+
 def import_nuscenes(
     dataroot: str | os.PathLike,
     scene: str,
@@ -113,13 +136,7 @@ def import_nuscenes(
         s = nusc.get("sample", tok)
         samples.append(s)
         tok = s["next"]
-    available = [c for c in CAMERAS if c in samples[0]["data"]] + sorted(
-        c for c in samples[0]["data"] if c.startswith("CAM") and c not in CAMERAS
-    )
-    chosen = list(cameras) if cameras else available
-    bad = [c for c in chosen if c not in available]
-    if bad:
-        raise PavemapError(f"camera(s) {bad} not in scene {scene}; available: {', '.join(available)}")
+    chosen = _chosen_cameras(samples[0], cameras, scene)
 
     # per camera, the ordered list of sample_data records to import
     if sweeps:
@@ -131,16 +148,7 @@ def import_nuscenes(
     if max_frames is not None:
         n = min(n, max_frames)
 
-    cams: dict[str, Camera] = {}
-    for c in chosen:
-        sd = chains[c][0]
-        cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-        K = np.asarray(cs["camera_intrinsic"], dtype=np.float64)
-        why = check_intrinsics(K)
-        if why:
-            raise SequenceError(dataroot / version / "calibrated_sensor.json", f"{c} ({cs['token']}): {why}")
-        cams[c] = Camera(c, int(sd["width"]), int(sd["height"]), K)
-
+    cams = {c: _camera(nusc, c, chains[c][0], dataroot / version / "calibrated_sensor.json") for c in chosen}
     first_ego = _pose(nusc.get("ego_pose", chains[chosen[0]][0]["ego_pose_token"]))
     origin = first_ego[:3, 3].copy()
     frames: list[Frame] = []
