@@ -89,7 +89,26 @@ def import_folder(
         egos = {c.name: resolve_ego_mask(ego_mask, per_cam[c.name], c.width, c.height, default_auto=False)[0]
                 for c in cameras.values()} if ego_mask is not None else {}
 
-    poses_file = Path(str(poses))
+    frames, jobs = _frames(rows, cameras, per_cam, images_dir, Path(str(poses)), out, fps)
+    seq = Sequence(
+        name or images_dir.resolve().name, list(classes or DEFAULT_CLASSES), cameras,
+        [frames[i] for i in sorted(frames)],
+    )
+    src_of = {dst: src for src, dst in jobs}  # georeference before copying: a GPS that does not fit copies nothing
+    attach_geo(seq, geo, poses=poses, images={f.index: src_of[out / next(iter(f.views.values())).image]
+                                              for f in seq.frames})  # GPS (--gps, poses.csv lat/lon, EXIF) or by hand
+    for src, dst in tqdm(jobs, desc="copy images", unit="img", disable=None):
+        copy_image(src, dst)
+    store_ego_masks(cameras, egos, out)
+    report_result(sfm_res, out)
+    write_sequence(seq, out)
+    return seq
+
+
+def _frames(rows: list[PoseRow], cameras: dict[str, Camera], per_cam: dict[str, list[Path]], images_dir: Path,
+            poses_file: Path, out: Path, fps: float | None) -> tuple[dict[int, Frame], list[tuple[Path, Path]]]:
+    """The sequence's frames from the pose rows (each view's image checked against its camera's size) and the
+    copy jobs (source image, destination in ``out``)."""
     by_cam: dict[str, list[PoseRow]] = {c: [] for c in cameras}
     for r in rows:
         cam = r.camera or (next(iter(cameras)) if len(cameras) == 1 else None)
@@ -98,7 +117,6 @@ def import_folder(
         if cam not in cameras:
             raise SequenceError(poses_file, f"unknown camera {cam!r}; cameras.json has {sorted(cameras)}")
         by_cam[cam].append(r)
-
     frames: dict[int, Frame] = {}
     jobs: list[tuple[Path, Path]] = []
     for cam, cam_rows in by_cam.items():
@@ -124,16 +142,4 @@ def import_folder(
                 raise SequenceError(poses_file, f"frame {r.frame} camera {cam!r} appears twice")
             f.views[cam] = View(cam, rel, r.T)
             jobs.append((src, out / rel))
-    seq = Sequence(
-        name or images_dir.resolve().name, list(classes or DEFAULT_CLASSES), cameras,
-        [frames[i] for i in sorted(frames)],
-    )
-    src_of = {dst: src for src, dst in jobs}  # georeference before copying: a GPS that does not fit copies nothing
-    attach_geo(seq, geo, poses=poses, images={f.index: src_of[out / next(iter(f.views.values())).image]
-                                              for f in seq.frames})  # GPS (--gps, poses.csv lat/lon, EXIF) or by hand
-    for src, dst in tqdm(jobs, desc="copy images", unit="img", disable=None):
-        copy_image(src, dst)
-    store_ego_masks(cameras, egos, out)
-    report_result(sfm_res, out)
-    write_sequence(seq, out)
-    return seq
+    return frames, jobs

@@ -26,6 +26,20 @@ def _find_poses(root: Path, seq_dir: Path, sequence: str) -> Path:
     )
 
 
+def _sequence_dir(root: Path, sequence: str, camera: int, stride: int) -> Path:
+    """``root/sequences/<sequence>``, or a one-line error for a wrong camera, stride or sequence."""
+    if camera not in (0, 1, 2, 3):
+        raise PavemapError(f"--camera must be 0, 1 (grey) or 2, 3 (colour), got {camera}")
+    if stride < 1:
+        raise PavemapError(f"--stride must be >= 1, got {stride}")
+    seq_root = root / "sequences"
+    seq_dir = seq_root / sequence
+    if not seq_dir.is_dir():
+        have = sorted(p.name for p in seq_root.iterdir() if p.is_dir()) if seq_root.is_dir() else []
+        raise SequenceError(seq_dir, f"sequence {sequence!r} not found; available: {have or 'none (wrong ROOT?)'}")
+    return seq_dir
+
+
 def import_kitti(
     root: str | os.PathLike,
     sequence: str,
@@ -45,15 +59,7 @@ def import_kitti(
     from tqdm import tqdm
 
     root, out = Path(root), Path(out)
-    if camera not in (0, 1, 2, 3):
-        raise PavemapError(f"--camera must be 0, 1 (grey) or 2, 3 (colour), got {camera}")
-    if stride < 1:
-        raise PavemapError(f"--stride must be >= 1, got {stride}")
-    seq_root = root / "sequences"
-    seq_dir = seq_root / sequence
-    if not seq_dir.is_dir():
-        have = sorted(p.name for p in seq_root.iterdir() if p.is_dir()) if seq_root.is_dir() else []
-        raise SequenceError(seq_dir, f"sequence {sequence!r} not found; available: {have or 'none (wrong ROOT?)'}")
+    seq_dir = _sequence_dir(root, sequence, camera, stride)
     calib = read_calib(seq_dir / "calib.txt")
     if camera not in calib.P:
         raise SequenceError(seq_dir / "calib.txt", f"no P{camera} for --camera {camera}; has {sorted(calib.P)}")

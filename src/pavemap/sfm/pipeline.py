@@ -83,17 +83,7 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         import pycolmap
     except ImportError as e:
         raise PavemapError(f"--poses sfm needs pycolmap: pip install 'pavemap[sfm]' ({e})") from None
-    if len(images) < 3:
-        raise PavemapError(f"SfM needs at least 3 images, got {len(images)}")
-    if camera_height <= 0:
-        raise PavemapError(f"camera height must be positive metres, got {camera_height}")
-    if ego_mask is not None and ego_mask.shape != (camera.height, camera.width):
-        raise PavemapError(f"ego mask is {ego_mask.shape[1]}x{ego_mask.shape[0]}, camera {camera.name} is "
-                           f"{camera.width}x{camera.height}")
-    if times is not None and len(times) != len(images):
-        raise PavemapError(f"SfM: {len(times)} frame times for {len(images)} images")
-    if method not in ("auto", "colmap", "planar"):
-        raise PavemapError(f"SfM method must be auto, colmap or planar, got {method!r}")
+    _check_inputs(images, camera, camera_height, ego_mask, times, method)
     checks = checks or SfmChecks(min_registered=min_registered)
     limits = limits or PartLimits()
     images = [Path(p) for p in images]
@@ -122,25 +112,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         masks = _mover_masks(movers, images, all_names, keyframes, ego_mask, work, info) if movers else None
         o["mask_dir"] = None if masks is None else work / "masks"
         rec = colmap_model(pycolmap, work, image_dir, names, camera, ego_mask, o) if method != "planar" else None
-        res = None
-        try:
-            if method == "planar":
-                raise PavemapError("planar motion asked for")
-            if rec is None:
-                raise PavemapError(f"SfM failed: no reconstruction from {len(names)} keyframes ({hint})")
-            res = _metric_result(rec, all_names, keyframes, camera, camera_height, limits, hint, info)
-            info["method"] = "pycolmap SfM"
-            if info.get("translations_rejected"):
-                raise PavemapError("SfM's steps point off the car's heading in most places (its translations "
-                                   "are wrong)")
-        except PavemapError as e:
-            if method == "colmap":
-                raise
-            if method == "auto":
-                log.warning("SfM: %s; following the car's planar motion instead", e)
-            info["sfm_failure"] = str(e)
-            res = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info,
-                                masks=masks)
+        res = _first_path(rec, method, images, all_names, keyframes, camera, camera_height, ego_mask, limits, hint,
+                          info, masks)
         if "intrinsics" in o:
             res.info["intrinsics_refinement"] = o["intrinsics"]
         _set_scale(res, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
@@ -161,6 +134,46 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         pycolmap.logging.minloglevel = old_level
         if own_tmp:
             shutil.rmtree(work, ignore_errors=True)
+
+
+def _check_inputs(images: list[Path], camera: Camera, camera_height: float, ego_mask: np.ndarray | None,
+                  times: np.ndarray | None, method: str) -> None:
+    """One-line errors for arguments :func:`sfm_poses` cannot work with, before any SfM work."""
+    if len(images) < 3:
+        raise PavemapError(f"SfM needs at least 3 images, got {len(images)}")
+    if camera_height <= 0:
+        raise PavemapError(f"camera height must be positive metres, got {camera_height}")
+    if ego_mask is not None and ego_mask.shape != (camera.height, camera.width):
+        raise PavemapError(f"ego mask is {ego_mask.shape[1]}x{ego_mask.shape[0]}, camera {camera.name} is "
+                           f"{camera.width}x{camera.height}")
+    if times is not None and len(times) != len(images):
+        raise PavemapError(f"SfM: {len(times)} frame times for {len(images)} images")
+    if method not in ("auto", "colmap", "planar"):
+        raise PavemapError(f"SfM method must be auto, colmap or planar, got {method!r}")
+
+
+def _first_path(rec, method: str, images: list[Path], names: list[str], keyframes: np.ndarray,  # noqa: ANN001
+                camera: Camera, camera_height: float, ego_mask: np.ndarray | None, limits: PartLimits, hint: str,
+                info: dict, masks: list[Path | None] | None) -> SfmResult:
+    """COLMAP's model ``rec`` made metric, or (``method`` auto / planar) the car's planar motion where COLMAP gave
+    no usable path: none, too few frames, or translations off the car's heading."""
+    try:
+        if method == "planar":
+            raise PavemapError("planar motion asked for")
+        if rec is None:
+            raise PavemapError(f"SfM failed: no reconstruction from {int(keyframes.sum())} keyframes ({hint})")
+        res = _metric_result(rec, names, keyframes, camera, camera_height, limits, hint, info)
+        info["method"] = "pycolmap SfM"
+        if info.get("translations_rejected"):
+            raise PavemapError("SfM's steps point off the car's heading in most places (its translations are wrong)")
+        return res
+    except PavemapError as e:
+        if method == "colmap":
+            raise
+        if method == "auto":
+            log.warning("SfM: %s; following the car's planar motion instead", e)
+        info["sfm_failure"] = str(e)
+        return planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info, masks=masks)
 
 
 def _set_scale(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
