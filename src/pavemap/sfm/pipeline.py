@@ -1,29 +1,27 @@
-"""Camera poses from plain video: incremental SfM with pycolmap, metric scale from the mount height.
+"""Camera poses from plain video: COLMAP or the car's planar motion, made metric by the road (docs/sfm.md).
 
 Steps (:func:`sfm_poses`):
 
-0. Keyframes by parallax (:func:`pavemap.sfm.checks.select_keyframes`): frames of a stopped
-   car are left out. The ego vehicle (``ego_mask``, :mod:`pavemap.io.egomask`) is masked out of
-   feature extraction: features on a bonnet move with the camera and pull SfM to zero motion.
-1. SIFT features, sequential matching (video order, with loop-free overlap), incremental
-   mapping with the known intrinsics held fixed (PINHOLE, one camera). Forward motion is the
-   normal case for a car: the initial pair may be along the viewing direction and need only a
-   small triangulation angle (COLMAP's defaults reject exactly such pairs). With
-   ``refine_intrinsics`` (nominal intrinsics) a final bundle adjustment refines focal length and
-   principal point. The largest model is kept; images it could not register are left out.
-2. Road points: SfM points that project into the lower-middle of their nearest
-   camera's image (where the road is for a forward-looking car camera) and lie below it.
-   "Up" is the cameras' mean −y axis with its component along the drive removed.
-3. Scale: each road point under the driven path is paired with the camera that later
-   passes over it (nearest in the ground plane), which makes the height independent of
-   the road's slope; the median of those heights, in SfM units, equals the known
-   mounting height ``camera_height`` (metres) → one scale factor. (A global road plane
-   was tried first: on a gently rolling road it biased the scale by up to 20 %.)
-4. Axes: world z = up, x = the driving direction, origin = the first camera's foot
-   point on the road (road at z ≈ 0).
-5. Sanity checks (:func:`pavemap.sfm.checks.check_sfm`): registered share, reprojection error,
-   smoothness of the path (turns, step ratios and, with frame times, speed changes within a car's ~1 g)
-   and a constant camera height along it, else a clear error.
+0. Keyframes by parallax (:func:`pavemap.sfm.checks.select_keyframes`): frames of a stopped car are left out
+   (posed between keyframes at the end). The ego vehicle (``ego_mask``) and what may move (``movers``: the
+   segmenter's vehicles and people) are masked out of feature extraction.
+1. COLMAP (:mod:`pavemap.sfm.colmap`): SIFT, sequential matching, incremental mapping with the known
+   intrinsics, forward-motion initial pairs allowed; the largest model is kept.
+2. The car's motion (:mod:`pavemap.sfm.parts`): the keyframes' path is cut at unregistered frames, heading
+   jumps and teleports, the longest consistent part kept and every other frame named; steps off the car's
+   heading are repaired onto it. Where COLMAP gives no usable path (none, too small, translations off the
+   heading) the car's planar motion between consecutive frames replaces it (:mod:`pavemap.sfm.planar`); where
+   COLMAP's path needed repairs, both are scored by the road and the better kept.
+3. Axes and a first scale: world z = up, x = the driving direction, origin = the first camera's foot point;
+   the scale from SfM's sparse road points under the path (:mod:`pavemap.sfm.sparse`) when there are some,
+   else provisional.
+4. The metric scale from the road (:func:`_set_scale`): each step's length from the road plane's image motion
+   at the known camera height (:mod:`pavemap.sfm.steps`), checked by densely matched road points
+   (:mod:`pavemap.sfm.scale`); a clip whose scale nothing could set is refused.
+5. Sanity checks (:func:`pavemap.sfm.checks.check_sfm`): reprojection error, turns, step ratios, speed changes
+   within ~1 g with frame times, a path that moves when its images do, the camera height along it.
+6. What was measured goes into ``info``; :func:`sfm_poses_or_report` writes ``sfm.json`` / ``sfm.png``
+   (:mod:`pavemap.sfm.report`) also when the clip is refused.
 """
 
 from __future__ import annotations
