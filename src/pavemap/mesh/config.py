@@ -190,6 +190,16 @@ class MeshConfig:
     segment_revisit_spacing_m: float = 1.5
     # A standing vehicle: frames within this distance (m) of the last frame kept add nothing but memory.
     segment_min_step_m: float = 0.1
+    # After the closed form (and the initial bake), move the surface by the global offset at which the training
+    # views agree best on colour (pavemap.mesh.refine_run; docs/refine.md). Off: on the synthetic bench drives at
+    # render_scale 0.25 the views' consistency does not resolve heights to better than ~5 cm (the closed form's
+    # bias is < 1 cm there), while on a scene with texture resolved at full scale it brings +-10 cm to < 1 cm.
+    refine: bool = False
+    # Report in metrics.json ("consistency") the global offset the views' consistency asks of the final surface,
+    # and warn beyond ``check_max_consistency_m``. Off by default for the same reason (and ~5 s on the kitti-like
+    # drive, 60 % of its stage 1).
+    consistency_check: bool = False
+    check_max_consistency_m: float = 0.03
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
 
     def __post_init__(self) -> None:
@@ -219,7 +229,7 @@ class MeshConfig:
                      "bake_fill_sigma", "pose_prior_deg", "pose_prior_m", "camera_height", "init_cell_m",
                      "depth_outlier_m", "lr_decay_final", "lr_height_decay_final", "camera_height_prior_sigma",
                      "camera_height_warn_frac", "ground_points_scale", "check_max_bias_m", "check_max_rms_m",
-                     "check_max_p90_m", "observed_radius_m"):
+                     "check_max_p90_m", "observed_radius_m", "check_max_consistency_m"):
             _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
                      "pose_align_rounds", "exposure_rounds", "seed", "init_fine_cell_m", "check_holdout_every",
