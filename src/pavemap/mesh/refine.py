@@ -8,8 +8,8 @@ at a wrong one each view samples a different patch of road (a view 6 m away and 
 on the road for a 10 cm error).
 
 The images are the training pool's pixels at ``render_scale`` (masked classes, the bonnet and the sky are
-holes), in log colour (a view's exposure gain and white balance become a constant) and band-passed (a blur of
-``sigma`` px minus a blur of :data:`SIGMA_LOW` px: the constant goes; the blur widens the basin of the
+holes; the road class only, see :func:`pool_images`), in log colour (a view's exposure gain and white balance
+become a constant, fitted per view and removed) and blurred by ``sigma`` px (the blur widens the basin of the
 coarse levels). The heights are ``z = z0 + B delta`` with B a global offset and tilt first, then bilinear
 control grids; each level takes Gauss-Newton steps on the robustly weighted sum of squared differences of
 each view's sample from the point's mean over its views (:mod:`pavemap.mesh.refine_solve`).
@@ -24,7 +24,12 @@ from torch.nn import functional as F  # noqa: N812
 
 from pavemap.mesh.data import PixelPool
 
-SIGMA_LOW = 6.0  # px: the band-pass's low cut (removes each view's exposure and white balance)
+# Each view's exposure gain and white balance, constants in log colour, are removed as per-view offsets fitted to
+# the points it shares with the other views (:func:`_view_offsets`). A band-pass (blur minus a 6 px blur) removed
+# them too, but biased the height by +4..+5 cm on the kitti-like bench drive: the same road point sits at
+# different image rows in different views, and foreshortening changes what a fixed image-space window averages.
+SIGMA_LOW = 0.0  # px: a band-pass's low cut (0: none)
+VIEW_OFFSETS = True
 EPS_LOG = 0.02  # log(rgb + eps): dark pixels' noise stays bounded
 
 
@@ -41,9 +46,11 @@ class ViewStack:
     W: int
 
 
-def pool_images(pool: PixelPool) -> tuple[torch.Tensor, torch.Tensor]:
+def pool_images(pool: PixelPool, road_only: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """The pool's pixels as images: rgb (V, 3, H, W) float32 in [0, 1] and mask (V, H, W) bool, H, W the
-    largest pixel row / column + 1 (smaller cameras are padded with masked pixels)."""
+    largest pixel row / column + 1 (smaller cameras are padded with masked pixels). ``road_only``: the mask
+    keeps the road-class pixels only: off the road the views see trees, poles and facades standing on the
+    ground that the height field holds, and their colours agree at no height of it."""
     uv = pool.uv.round().long()
     W, H = int(uv[:, 0].max()) + 1, int(uv[:, 1].max()) + 1
     V = len(pool.keys)
@@ -51,7 +58,7 @@ def pool_images(pool: PixelPool) -> tuple[torch.Tensor, torch.Tensor]:
     rgb = torch.zeros(3, V * H * W, device=pool.uv.device)
     rgb[:, flat] = pool.rgb.float().T / 255.0
     mask = torch.zeros(V * H * W, dtype=torch.bool, device=pool.uv.device)
-    mask[flat] = True
+    mask[flat] = pool.road if road_only else True
     return rgb.reshape(3, V, H, W).permute(1, 0, 2, 3).contiguous(), mask.reshape(V, H, W)
 
 
@@ -70,12 +77,12 @@ def _blur(x: torch.Tensor, m: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 def view_stack(rgb: torch.Tensor, mask: torch.Tensor, K: torch.Tensor, T: torch.Tensor, sigma: float) -> ViewStack:
-    """Band-passed log images (:data:`SIGMA_LOW`, ``sigma`` px) of rgb (V, 3, H, W), mask (V, H, W), seen by
-    intrinsics K (V, 3, 3) from camera-to-world poses T (V, 4, 4)."""
+    """Blurred log images (``sigma`` px; a band-pass with :data:`SIGMA_LOW` > 0) of rgb (V, 3, H, W), mask
+    (V, H, W), seen by intrinsics K (V, 3, 3) from camera-to-world poses T (V, 4, 4)."""
     V, C, H, W = rgb.shape
     m = mask[:, None].float()
     log = torch.log(rgb + EPS_LOG)
-    band = _blur(log, m, sigma) - _blur(log, m, SIGMA_LOW)
+    band = _blur(log, m, sigma) if SIGMA_LOW <= 0 else _blur(log, m, sigma) - _blur(log, m, SIGMA_LOW)
     R, t = T[:, :3, :3].float(), T[:, :3, 3].float()
     Rc = R.transpose(1, 2)
     P = K.float() @ torch.cat([Rc, -(Rc @ t[:, :, None])], 2)
@@ -157,20 +164,37 @@ class Residuals:
 def residuals(st: ViewStack, pt: torch.Tensor, view: torch.Tensor, xy: torch.Tensor, z: torch.Tensor,
               n_points: int, huber: float = 1.5) -> Residuals:
     """The consistency residuals of points xy (P, 2), z (P,) over the pairs ``pt``, ``view`` (N,), with
-    analytic height derivatives and Huber weights at ``huber`` x the median absolute residual."""
+    analytic height derivatives and Huber weights at ``huber`` x the median absolute residual. The views'
+    log-colour offsets (:func:`_view_offsets`) are removed first and held fixed in the derivative."""
     uv, duv, _ = project(st.P[view], xy[pt], z[pt])
     val, grad, ok = sample(st, view, uv)
     J = (grad * duv[:, :, None]).sum(1)  # (N, C)
+    if VIEW_OFFSETS:
+        val = val - _view_offsets(val.detach(), pt, view, ok, n_points, st.P.shape[0])[view]
     w = ok.float()
-    for _ in range(2):  # the mean with the robust weights of the first pass
+    for k in range(3):  # the mean, then Huber weights around it, then the mean with those weights
         ws = torch.zeros(n_points, device=z.device).index_add_(0, pt, w).clamp(min=1e-9)
         mean = torch.zeros(n_points, val.shape[1], device=z.device).index_add_(0, pt, w[:, None] * val) / ws[:, None]
         jm = torch.zeros(n_points, J.shape[1], device=z.device).index_add_(0, pt, w[:, None] * J) / ws[:, None]
         r = val - mean[pt]
+        if k == 2:
+            break
         a = r.norm(dim=1)
         scale = huber * a[ok].median().clamp(min=1e-6) if ok.any() else torch.ones((), device=z.device)
         w = ok.float() * torch.where(a <= scale, torch.ones_like(a), scale / a.clamp(min=1e-9))
     return Residuals(r, J - jm[pt], w)
+
+
+def _view_offsets(val: torch.Tensor, pt: torch.Tensor, view: torch.Tensor, ok: torch.Tensor, n_points: int,
+                  n_views: int) -> torch.Tensor:
+    """(V, C) each view's mean difference from the other views at the points they share: its exposure and white
+    balance in log colour (constant over the view), which the comparison must not count as a height error."""
+    w = ok.float()
+    ws = torch.zeros(n_points, device=val.device).index_add_(0, pt, w).clamp(min=1e-9)
+    mean = torch.zeros(n_points, val.shape[1], device=val.device).index_add_(0, pt, w[:, None] * val) / ws[:, None]
+    d = val - mean[pt]
+    wv = torch.zeros(n_views, device=val.device).index_add_(0, view, w).clamp(min=1e-9)
+    return torch.zeros(n_views, val.shape[1], device=val.device).index_add_(0, view, w[:, None] * d) / wv[:, None]
 
 
 def consistency_loss(st: ViewStack, pt: torch.Tensor, view: torch.Tensor, xy: torch.Tensor, z: torch.Tensor,
@@ -178,8 +202,10 @@ def consistency_loss(st: ViewStack, pt: torch.Tensor, view: torch.Tensor, xy: to
     """The reference loss, differentiable w.r.t. z (P,) by autograd: sum over pairs of w (N,) x the squared
     difference of the sample from its point's w-weighted mean (what :func:`residuals` linearises)."""
     uv, _, _ = project(st.P[view], xy[pt], z[pt])
-    val, _, _ = sample(st, view, uv)
+    val, _, ok = sample(st, view, uv)
     n = z.shape[0]
+    if VIEW_OFFSETS:
+        val = val - _view_offsets(val.detach(), pt, view, ok, n, st.P.shape[0])[view]
     ws = torch.zeros(n, device=z.device).index_add(0, pt, w).clamp(min=1e-9)
     mean = torch.zeros(n, val.shape[1], device=z.device).index_add(0, pt, w[:, None] * val) / ws[:, None]
     return (w[:, None] * (val - mean[pt]) ** 2).sum()
