@@ -98,7 +98,9 @@ def main() -> None:
     torch.set_num_threads(1)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
-    results = {"targets": TARGETS, **machine_entry(), "commit": commit, "presets": {}}
+    old = json.loads(a.results.read_text()) if a.results.is_file() else {}
+    results = {"targets": TARGETS, **machine_entry(), "commit": commit, "presets": {},
+               **({"diagnosis": old["diagnosis"]} if "diagnosis" in old else {})}  # bench/refine_diag.py's
     for preset in a.presets.split(","):
         seq_dir = bench_drive(a.data, preset, "none", "cpu")
         entry = {"closed_form": run(seq_dir, preset, False)}
