@@ -106,6 +106,9 @@ def main() -> None:
         entry = {"closed_form": run(seq_dir, preset, False)}
         print(preset, json.dumps(entry["closed_form"]), flush=True)
         entry["refined"] = run(seq_dir, preset, True)
+        # the load of a shared machine moves whole runs by 2-4x: the refinement's own seconds against the closed form's
+        closed = entry["closed_form"]["seconds_without_check"]
+        entry["time_ratio_refine"] = round((closed + entry["refined"]["refine"]["seconds"]) / max(closed, 1e-9), 2)
         print(preset, json.dumps(entry["refined"]), flush=True)
         entry["shifted"] = shifted(seq_dir, preset)
         entry["relief_gauss_newton"] = relief(seq_dir, preset)
