@@ -191,13 +191,13 @@ class MeshConfig:
     # A standing vehicle: frames within this distance (m) of the last frame kept add nothing but memory.
     segment_min_step_m: float = 0.1
     # After the closed form (and the initial bake), move the surface by the global offset at which the training
-    # views agree best on colour (pavemap.mesh.refine_run; docs/refine.md). Off: on the synthetic bench drives at
-    # render_scale 0.25 the views' consistency does not resolve heights to better than ~5 cm (the closed form's
-    # bias is < 1 cm there), while on a scene with texture resolved at full scale it brings +-10 cm to < 1 cm.
+    # views agree best on colour (pavemap.mesh.refine_run; docs/refine.md): a surface +-10 cm off ends within
+    # 0.4 cm (kitti-like) / 1.2 cm (nuScenes-like). Off: on top of the ground points it changed the height RMSE by
+    # -2 % / +8 % and the bias from 0.41 to 0.07 cm / -0.12 to 0.78 cm, at +5 / +8 s (bench/results/refine.json).
     refine: bool = False
     # Report in metrics.json ("consistency") the global offset the views' consistency asks of the final surface,
-    # and warn beyond ``check_max_consistency_m``. Off by default for the same reason (and ~5 s on the kitti-like
-    # drive, 60 % of its stage 1).
+    # and warn beyond ``check_max_consistency_m``. Off by default: +2.5 / +3.7 s (a third / a sixth of stage 1),
+    # and it reads +1.7 cm on the nuScenes-like closed form (a bias of its own, docs/refine.md).
     consistency_check: bool = False
     check_max_consistency_m: float = 0.03
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
