@@ -190,6 +190,16 @@ class MeshConfig:
     segment_revisit_spacing_m: float = 1.5
     # A standing vehicle: frames within this distance (m) of the last frame kept add nothing but memory.
     segment_min_step_m: float = 0.1
+    # After the closed form (and the initial bake), move the surface by the global offset at which the training
+    # views agree best on colour (pavemap.mesh.refine_run; docs/refine.md): a surface +-10 cm off ends within
+    # 0.4 cm (kitti-like) / 1.2 cm (nuScenes-like). Off: on top of the ground points it changed the height RMSE by
+    # -2 % / +8 % and the bias from 0.41 to 0.07 cm / -0.12 to 0.78 cm, at +5 / +8 s (bench/results/refine.json).
+    refine: bool = False
+    # Report in metrics.json ("consistency") the global offset the views' consistency asks of the final surface,
+    # and warn beyond ``check_max_consistency_m``. Off by default: +2.5 / +3.7 s (a third / a sixth of stage 1),
+    # and it reads +1.7 cm on the nuScenes-like closed form (a bias of its own, docs/refine.md).
+    consistency_check: bool = False
+    check_max_consistency_m: float = 0.03
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
 
     def __post_init__(self) -> None:
@@ -219,7 +229,7 @@ class MeshConfig:
                      "bake_fill_sigma", "pose_prior_deg", "pose_prior_m", "camera_height", "init_cell_m",
                      "depth_outlier_m", "lr_decay_final", "lr_height_decay_final", "camera_height_prior_sigma",
                      "camera_height_warn_frac", "ground_points_scale", "check_max_bias_m", "check_max_rms_m",
-                     "check_max_p90_m", "observed_radius_m"):
+                     "check_max_p90_m", "observed_radius_m", "check_max_consistency_m"):
             _require(self, name, lambda v: v > 0, "must be positive")
         for name in ("epochs", "holdout_every", "pe_levels", "bake_sharpen_iters", "pose_align_iters",
                      "pose_align_rounds", "exposure_rounds", "seed", "init_fine_cell_m", "check_holdout_every",

@@ -83,6 +83,7 @@ class _Run:
     exposure: torch.Tensor | None = None  # (V, 2) the training views' gain and offset (final bake)
     init_hits: list | None = None  # the visible-pixel march on the initial surface, for the initial bake
     relief_state: dict | None = None  # the initial relief fit's point weights, for the kerb refit
+    refined: dict | None = None  # what the photometric refinement did (mesh.refine)
 
     def warn(self, msg: str) -> None:
         self.notes.append(msg)
@@ -126,6 +127,10 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
             bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
                       semantics=fit.use_sem)
     run.init_hits = None  # freed before training
+    if cfg.refine and run.done.epoch == 0:
+        from pavemap.mesh.refine_run import refine_offset
+
+        run.refined = refine_offset(fit.model, fit.pool, _posed(fit), cfg)
     run.relief_state = None
     history, schedule = _train(fit, run, out_dir, progress)
     mesh, metrics = _finish(fit, run, seq, history, schedule)
@@ -193,6 +198,10 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     s = mesh.surface
     metrics["geometry"] = self_check(run.geo, data.grid.spec, s.heights.detach().cpu().numpy(),
                                      s.valid.cpu().numpy(), mesh.observed.cpu().numpy(), cfg, run.warn)
+    if cfg.refine or cfg.consistency_check:
+        from pavemap.mesh.refine_run import record
+
+        record(fit.model, fit.pool, _posed(fit), cfg, run.refined, run.warn, metrics)
     metrics.update(history=history, warnings=run.notes, config=cfg.to_dict())
     if fit.poses is not None:
         metrics["pose_alignment"] = run.align_log

@@ -1,0 +1,100 @@
+"""The photometric refinement and the multi-view consistency self-check (issue 47) on a scene whose road
+texture the views resolve (tests/mesh_scene.py at 240 x 150 px, a forward and a rearward camera)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mesh_scene import ROAD_HALF, read_scene
+from pavemap.io.truth import read_truth_height
+from pavemap.mesh import MeshConfig, reconstruct
+from pavemap.mesh.model import RoadMeshModel
+from pavemap.mesh.refine import consistency_loss, find_pairs, pool_images, residuals, view_stack
+from pavemap.mesh.refine_run import consistency_metrics, refine_offset
+from pavemap.mesh.setup import prepare
+
+
+def _cfg(**kw) -> MeshConfig:
+    base = dict(resolution=0.1, crop_m=3.0, render_scale=1.0, eval_scale=0.5, holdout_every=0, device="cpu",
+                threads=1, resume=False, view_range_m=0.0, ground_points="off", init_height_search=False)
+    base.update(kw)
+    return MeshConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """The scene, its training pool and grid, and the true heights (Nv,) of the grid's vertices."""
+    seq = read_scene(tmp_path_factory.mktemp("refine") / "seq", frames=10, width=240, height=150, step=0.6,
+                     cams=(0.0, 180.0))
+    cfg = _cfg()
+    data = prepare(seq, cfg, torch.device("cpu"), lambda msg: None)
+    z, inside = read_truth_height(seq.root).height_at(torch.from_numpy(data.grid.vertex_xy()))
+    assert inside.all()
+    return seq, cfg, data, z.float()
+
+
+def _model(data, z: torch.Tensor) -> RoadMeshModel:  # noqa: ANN001
+    return RoadMeshModel(data.grid, len(data.classes), 2, 8, z.numpy())
+
+
+def _bias(model: RoadMeshModel, truth: torch.Tensor) -> float:
+    return float((model.current_heights() - truth).mean())
+
+
+@pytest.mark.parametrize("offset", [0.10, -0.10])
+def test_refinement_pulls_a_shifted_surface_back(world, offset):
+    _, cfg, data, truth = world
+    model = _model(data, truth + offset)
+    done = refine_offset(model, data.pool, data.pool.T, cfg)
+    after = _bias(model, truth)
+    assert abs(after) <= 0.5 * abs(offset), (offset, after, done)
+    assert abs(after) < 0.03
+    assert done["offset_m"] * offset < 0  # it moved towards the truth
+
+
+def test_consistency_flags_a_shifted_surface_and_not_the_true_one(world):
+    _, cfg, data, truth = world
+    right = consistency_metrics(_model(data, truth), data.pool, data.pool.T, cfg)
+    wrong = consistency_metrics(_model(data, truth + 0.08), data.pool, data.pool.T, cfg)
+    assert not right["flagged"] and abs(right["offset_m"]) < cfg.check_max_consistency_m, right
+    assert wrong["flagged"] and -0.11 < wrong["offset_m"] < -0.05, wrong
+
+
+def test_analytic_height_derivative_matches_autograd(world):
+    """The Gauss-Newton solve's dr/dz (refine.residuals) against autograd of the reference loss."""
+    _, cfg, data, truth = world
+    rgb, mask = pool_images(data.pool)
+    T = data.pool.T.double().clone()
+    xy64 = torch.from_numpy(data.grid.vertex_xy())
+    origin = torch.cat([xy64.mean(0), truth.double().mean()[None]])
+    T[:, :3, 3] -= origin
+    st = view_stack(rgb, mask, data.pool.K, T.float(), 1.0)
+    xy = (xy64 - origin[:2]).float()[::7]
+    z = ((truth.double() - origin[2]).float() + 0.03)[::7].clone()
+    pt, view = find_pairs(st, xy, z, cfg.max_dist, 8)
+    assert pt.numel() > 1000
+    res = residuals(st, pt, view, xy, z, z.shape[0])
+    w = res.w.detach()
+    zz = z.clone().requires_grad_(True)
+    consistency_loss(st, pt, view, xy, zz, w).backward()
+    analytic = torch.zeros_like(z).index_add_(0, pt, 2 * w * (res.r * res.J).sum(1))
+    seen = analytic.abs() > 0
+    assert seen.sum() > 100
+    err = (zz.grad[seen] - analytic[seen]).abs().max() / analytic[seen].abs().max()
+    assert err < 1e-3, float(err)
+
+
+def test_a_run_with_refine_records_it(world):
+    seq, _, _, _ = world
+    cfg = _cfg(refine=True, consistency_check=True, camera_height=1.62)  # the prior 12 cm off the truth
+    mesh, m = reconstruct(seq, None, cfg, progress=False)
+    assert "refine" in m and "consistency" in m
+    truth = read_truth_height(seq.root)
+    s = mesh.surface
+    xy = s.grid_xy()[s.valid].double()
+    zt, inside = truth.height_at(xy)
+    road = inside & (xy[:, 1].abs() < ROAD_HALF - 0.2)  # the flat initial surface has no kerb: the road's bias
+    bias = float((s.heights[s.valid].double()[road] - zt[road]).mean())
+    assert abs(bias) < 0.03, (bias, m["refine"])
+    assert not m["consistency"]["flagged"], m["consistency"]
