@@ -221,26 +221,6 @@ def refine_heights(rgb: torch.Tensor, mask: torch.Tensor, K: torch.Tensor, T: to
     return (zb + dz).double().cpu() + origin[2].cpu(), log
 
 
-def consistency_offset(rgb: torch.Tensor, mask: torch.Tensor, K: torch.Tensor, T: torch.Tensor,
-                       vertex_xy: torch.Tensor, z: torch.Tensor, res: float, max_dist: float, sigma: float = 1.0,
-                       iters: int = 4, stride: int = 3) -> float | None:
-    """The global height offset (m) the multi-view consistency asks of the surface z (Nv,) at ``vertex_xy``
-    (Nv, 2): Gauss-Newton on one offset, on images blurred by ``sigma`` px (None when no point is seen twice).
-    Near 0 on a right surface; a surface 5 cm too high gives about -5 cm."""
-    lv = Level("offset", sigma, iters, max_step=0.05)
-    origin = torch.cat([vertex_xy.double().mean(0), z.double().mean()[None]])
-    T = T.double().clone()
-    T[:, :3, 3] -= origin.to(T.device)
-    xy = (vertex_xy.double() - origin[:2]).float().to(rgb.device)
-    zb = (z.double() - origin[2]).float().to(rgb.device)
-    pts = _point_subset(vertex_xy.double(), res, stride).to(rgb.device)
-    st = view_stack(rgb, mask, K, T.float(), sigma)
-    b = Basis(torch.zeros(pts.numel(), 1, dtype=torch.long, device=xy.device),
-              torch.ones(pts.numel(), 1, device=xy.device), torch.zeros(0, 2, dtype=torch.long, device=xy.device), 1)
-    delta, costs = solve_level(st, xy[pts], zb[pts], b, lv, max_dist, 8)
-    return float(delta[0]) if costs else None
-
-
 COARSE = tuple(round(0.02 * k, 2) for k in range(-10, 11))  # m: the scan's offsets (+-20 cm in 2 cm)
 
 
