@@ -98,3 +98,24 @@ def test_a_run_with_refine_records_it(world):
     bias = float((s.heights[s.valid].double()[road] - zt[road]).mean())
     assert abs(bias) < 0.03, (bias, m["refine"])
     assert not m["consistency"]["flagged"], m["consistency"]
+
+
+def test_heldout_psnr_counts_only_textured_faces(world):
+    """Pixels on vertices no training view textured carry the bake's gap fill, not a reconstruction: the
+    held-out PSNR leaves them out and says their share (the first frame of a real drive sees such road)."""
+    from mesh_scene import texture
+    from pavemap.mesh.evaluate import evaluate_pool
+
+    _, cfg, data, truth = world
+    model = _model(data, truth)
+    with torch.no_grad():
+        model.rgb.copy_(torch.from_numpy(texture(data.grid.vertex_xy())).float())
+    heights = model.dense_heights(0.0)
+    good = evaluate_pool(model, data.pool, heights, cfg.max_dist)
+    seen = torch.from_numpy(data.grid.vertex_xy()[:, 0] < 0)  # the far half untextured...
+    with torch.no_grad():
+        model.rgb[~seen] = torch.tensor([1.0, 0.0, 1.0])  # ...and filled with a colour the road never has
+    ev = evaluate_pool(model, data.pool, heights, cfg.max_dist, seen=seen)
+    assert 0.2 < ev["textured_share"] < 0.8, ev
+    assert ev["psnr_all"] < good["psnr"] - 5 < ev["psnr"] - 4, (good, ev)
+    assert "psnr_all" not in good and "textured_share" not in good

@@ -79,11 +79,11 @@ def test_sfm_rejects_too_few_images(tmp_path):
         sfm_poses([tmp_path / f"{i}.png" for i in range(3)], cam, times=np.zeros(2))
 
 
-def _checked(C: np.ndarray, times: np.ndarray | None) -> dict:
+def _checked(C: np.ndarray, times: np.ndarray | None, nominal: bool = False) -> dict:
     from pavemap.sfm.checks import SfmChecks, check_sfm
 
     info = {"registered": len(C), "keyframes": len(C), "reproj_px": 0.5}
-    return check_sfm(info, C, np.full(len(C), 1.5), SfmChecks(), times=times)
+    return check_sfm(info, C, np.full(len(C), 1.5), SfmChecks(nominal_times=nominal), times=times)
 
 
 def test_speed_check_passes_a_car_and_stops_a_jumping_path():
@@ -104,6 +104,10 @@ def test_speed_check_passes_a_car_and_stops_a_jumping_path():
         _checked(J, t)
     # without frame times nothing is claimed about speed (the step-ratio check alone: 6.6 < 10 passes it)
     assert _checked(J, None)["max_accel_mps2"] is None
+    # an image folder's --fps is a claim (irregular keyframes): the same path is reported and warned, not refused
+    f = _checked(J, t, nominal=True)
+    assert f["max_accel_mps2"] > 10 and f["frame_times"] == "nominal" and "not refused" in f["accel_unchecked"]
+    assert "accel_unchecked" not in _checked(C, t) and _checked(C, t)["frame_times"] == "measured"
 
 
 def test_fps_must_be_positive(tmp_path):

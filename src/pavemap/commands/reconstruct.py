@@ -48,8 +48,10 @@ def register(app: typer.Typer) -> None:
         def fmt(v: object, spec: str) -> str:
             return "n/a" if v is None else format(v, spec)
 
+        share = m.get("heldout_textured_share")
+        on = "" if share is None else f" on the {100 * share:.0f} % of held-out road the training views textured"
         typer.echo(
-            f"mesh: {m['vertices']} vertices, {m['faces']} faces; PSNR {fmt(m['psnr'], '.2f')} dB, "
+            f"mesh: {m['vertices']} vertices, {m['faces']} faces; PSNR {fmt(m['psnr'], '.2f')} dB{on}, "
             f"semantic acc {fmt(m['sem_acc'], '.3f')}, height RMSE {fmt(m.get('height_rmse'), '.3f')} m, "
             f"{m['seconds']:.0f} s on {m['device']} -> {out}"
         )

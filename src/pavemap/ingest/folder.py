@@ -21,6 +21,7 @@ from pavemap.io.folder import (
     read_poses_csv,
 )
 from pavemap.io.sequence import SequenceError, write_sequence
+from pavemap.sfm.checks import SfmChecks
 from pavemap.sfm.pipeline import report_result, sfm_poses_or_report  # pycolmap is imported when SfM runs
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
@@ -75,7 +76,8 @@ def import_folder(
         ego, _ = resolve_ego_mask(ego_mask, per_cam[cam.name], cam.width, cam.height, default_auto=True)
         res = sfm_res = sfm_poses_or_report(out, per_cam[cam.name], cam, camera_height=camera_height, ego_mask=ego,
                                           refine_intrinsics=refine_intrinsics, movers=movers,
-                                          times=None if fps is None else np.arange(len(per_cam[cam.name])) / fps)
+                                          times=None if fps is None else np.arange(len(per_cam[cam.name])) / fps,
+                                          checks=SfmChecks(nominal_times=True))
         if refine_intrinsics and res.K is not None:
             cam.K = res.K
         egos = {cam.name: ego}

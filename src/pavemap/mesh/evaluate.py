@@ -27,12 +27,18 @@ def psnr(mse: float) -> float:
 @torch.no_grad()
 def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, max_dist: float,
                   delta: torch.Tensor | None = None, max_pixels: int | None = None, batch: int = 131072,
-                  generator: torch.Generator | None = None, exposure: torch.Tensor | None = None
-                  ) -> dict[str, float]:
+                  generator: torch.Generator | None = None, exposure: torch.Tensor | None = None,
+                  seen: torch.Tensor | None = None) -> dict[str, float]:
     """Render the pool's pixels (a random ``max_pixels`` of them when given) on dense ``heights`` (ny, nx)
     from the pool's poses corrected by ``delta`` (V, 6), each view at its ``exposure`` (V, 2) when given.
     Returns psnr over road pixels the mesh covers, sem_acc over labelled hit pixels, coverage (hit fraction)
-    and road_pixels."""
+    and road_pixels.
+
+    ``seen``: (Nv,) bool the vertices some training pixel textured. With it, ``psnr`` counts only road pixels
+    on faces whose three vertices are textured: elsewhere the colour is the bake's gap fill, which measures no
+    reconstruction, only how far the held-out view sees past the training views (the first frame of a drive
+    sees road no later frame does). ``psnr_all`` then keeps every covered road pixel and ``textured_share`` says
+    what share of them ``psnr`` rests on."""
     n = len(pool)
     idx = torch.arange(n, device=pool.view.device)
     if max_pixels is not None and n > max_pixels:
@@ -41,7 +47,8 @@ def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, 
     bounds = surface_bounds(hf, pool.uv.dtype)
     T = corrected_poses(pool.T, delta)
     se = torch.zeros((), dtype=torch.float64, device=heights.device)
-    n_road = n_sem = n_ok = n_hit = 0
+    se_all = torch.zeros((), dtype=torch.float64, device=heights.device)
+    n_road = n_road_all = n_sem = n_ok = n_hit = 0
     for s in range(0, idx.numel(), batch):
         b = idx[s:s + batch]
         o, d = view_rays(pool.K, T, pool.view[b], pool.uv[b])
@@ -53,7 +60,12 @@ def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, 
         rgb = exposure_model.apply((bary[..., None] * model.rgb[cid]).sum(1), exposure, pool.view[b][hv]).clamp(0, 1)
         gt = pool.rgb[b][hv].float() / 255.0
         road = pool.road[b][hv]
-        se += ((rgb - gt) ** 2).mean(1)[road].double().sum()
+        err = ((rgb - gt) ** 2).mean(1)
+        se_all += err[road].double().sum()
+        n_road_all += int(road.sum())
+        if seen is not None:
+            road = road & seen.to(cid.device)[cid].all(1)
+        se += err[road].double().sum()
         n_road += int(road.sum())
         ch = pool.channel[b][hv]
         lab = ch >= 0
@@ -61,12 +73,16 @@ def evaluate_pool(model: RoadMeshModel, pool: PixelPool, heights: torch.Tensor, 
             pred = (bary[lab][..., None] * model.sem[cid[lab]]).sum(1).argmax(1)
             n_ok += int((pred == ch[lab]).sum())
             n_sem += int(lab.sum())
-    return {
+    out = {
         "psnr": psnr(float(se) / n_road) if n_road else float("nan"),
         "sem_acc": n_ok / n_sem if n_sem else float("nan"),
         "coverage": n_hit / max(1, idx.numel()),
         "road_pixels": n_road,
     }
+    if seen is not None:
+        out["psnr_all"] = psnr(float(se_all) / n_road_all) if n_road_all else float("nan")
+        out["textured_share"] = n_road / n_road_all if n_road_all else float("nan")
+    return out
 
 
 def _height_sq_err(mesh_heights: torch.Tensor, valid: torch.Tensor, grid_xy: torch.Tensor,
@@ -124,7 +140,7 @@ def stage_metrics(fit: Fit, data: TrainData, mesh: RoadMesh, fill: float, eval_d
     heights = model.dense_heights(fill)
     t_ev = time.perf_counter()
     ev_exposure = None if exposure is None else exposure_model.interpolate(pool.keys, exposure, data.epool.keys)
-    ev = evaluate_pool(model, data.epool, heights, cfg.max_dist, delta=eval_delta, exposure=ev_exposure)
+    ev = evaluate_pool(model, data.epool, heights, cfg.max_dist, delta=eval_delta, exposure=ev_exposure, seen=seen)
     ev_s = time.perf_counter() - t_ev
     # The fit to the training views (on their refined poses): with pose refinement the held-out views keep
     # their raw poses (plus interpolated corrections), so this is where aligned poses show.
@@ -135,7 +151,9 @@ def stage_metrics(fit: Fit, data: TrainData, mesh: RoadMesh, fill: float, eval_d
     metrics: dict = {
         "psnr": ev["psnr"], "sem_acc": ev["sem_acc"] if data.use_sem else None, "train_psnr": ev_train["psnr"],
         "heldout": data.heldout, "heldout_views": len(data.epool.keys), "train_views": len(pool.keys),
-        "coverage": ev["coverage"], "vertices": grid.vertices, "faces": grid.faces, "grid": grid.spec.to_dict(),
+        "coverage": ev["coverage"], "psnr_untextured_included": ev.get("psnr_all"),
+        "heldout_textured_share": ev.get("textured_share"), "vertices": grid.vertices, "faces": grid.faces,
+        "grid": grid.spec.to_dict(),
         "eval_pixels_per_second": len(data.epool) / max(ev_s, 1e-9),
         "exposure": exposure_model.summary(exposure),
     }

@@ -33,6 +33,9 @@ class SfmChecks:
       (a video's frame rate, ``--fps``): speeds are averaged over ``accel_window_s`` so that the SfM
       positions' noise (~0.1 m) stays ~0.6 m/s² of it at 2 Hz. No car brakes or accelerates by more than ~1 g;
       the same limit holds at a wrong scale of ±50 %, which the camera height fixes anyway.
+    - ``nominal_times``: the frame times are a claim, not a measurement (``--fps`` of an image folder: keyframes
+      exported from a log are often irregular, nuScenes' 2 Hz ones by ±10 %): a speed change past the limit is
+      reported and warned about, not refused; a video's timestamps are measured and are enforced.
     - ``max_height_dev``: largest deviation of the 10th / 90th percentile of the per-camera heights over
       the road from their median, as a share of it (the mount does not move: a wandering height means
       a wrong geometry). Per-camera heights from local road planes are noisy on smooth real asphalt
@@ -51,6 +54,7 @@ class SfmChecks:
     accel_window_s: float = 1.0
     max_height_dev: float = 0.2
     min_median_step_m: float = 0.05
+    nominal_times: bool = False
 
 
 def select_keyframes(images: list[Path], min_parallax: float = 0.01, mask: np.ndarray | None = None,
@@ -145,6 +149,7 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
         "max_turn_deg": round(turn, 2),
         "max_step_ratio": round(ratio, 2),
         "max_accel_mps2": None if acc is None else round(acc[0], 2),
+        "frame_times": None if times is None else ("nominal" if checks.nominal_times else "measured"),
         "height_dev": round(dev, 4),
         "height_range_m": [round(float(h.min()), 3), round(float(h.max()), 3)] if h.size else None,
         "height_p10_p90_m": [round(p10, 3), round(p90, 3)] if h.size else None,
@@ -168,7 +173,13 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
     if ratio > checks.max_step_ratio:
         raise PavemapError(f"SfM sanity check failed: one step of the path is {ratio:.1f}× the previous one "
                            f"(> {checks.max_step_ratio}): the trajectory jumps{tail}")
-    if acc is not None and acc[0] > checks.max_accel_mps2:
+    if acc is not None and acc[0] > checks.max_accel_mps2 and checks.nominal_times:
+        figures["accel_unchecked"] = (f"the path's speed changes by {acc[0]:.1f} m/s within one second "
+                                      f"{acc[1]:.1f}-{acc[1] + 2 * checks.accel_window_s:.1f} s into the drive "
+                                      f"(> {checks.max_accel_mps2:g} m/s²) at the nominal frame times: irregular "
+                                      "frame times or a mis-measured step; not refused")
+        log.warning("SfM: %s", figures["accel_unchecked"])
+    elif acc is not None and acc[0] > checks.max_accel_mps2:
         raise PavemapError(f"SfM sanity check failed: the path's speed changes by {acc[0]:.1f} m/s within one "
                            f"second {acc[1]:.1f}-{acc[1] + 2 * checks.accel_window_s:.1f} s into the drive "
                            f"(> {checks.max_accel_mps2:g} m/s², about 1 g): the trajectory is not a car's; "
