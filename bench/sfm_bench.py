@@ -20,6 +20,11 @@ road matches best (``pavemap.sfm.steps.road_sideways``), beside the SfM path's o
 Both also report ``speed_check``: what the importers' speed check (``--fps``; KITTI 10 Hz, the clip's
 keyframes 2 Hz) says of the trajectory found: the largest change of speed per second, against its limit.
 
+``stage1`` / ``stage1_2``: the user's whole path on each nuScenes clip, through the CLI: ``import folder --poses
+sfm --fps 2`` (the segmenter's semantics and vehicle masks), then ``reconstruct`` with its defaults: frames
+kept, other parts, the speed check's reading, stage 1's camera height and held-out PSNR (over the road the
+training views textured, with that share and the PSNR over every covered road pixel beside it).
+
 Data: ``../shared/data`` (``PAVEMAP_DATA`` overrides). Run it niced: it uses the CPU for minutes.
 """
 
@@ -202,13 +207,42 @@ def synthetic_steps() -> dict:
     return out
 
 
+def stage1(clip: str) -> dict:
+    """Import a clip with SfM and reconstruct it, as a user does (one process per command)."""
+    import subprocess
+    import tempfile
+
+    root = DATA / clip
+    cli = [sys.executable, "-c", "import sys; from pavemap.cli import main; sys.exit(main())"]
+    with tempfile.TemporaryDirectory(prefix="pavemap-sfm-bench-") as td:
+        seq, mesh = Path(td) / "seq", Path(td) / "mesh"
+        t = time.time()
+        subprocess.run(cli + ["import", "folder", str(root / "images"), "--cameras", str(root / "cameras.json"),
+                              "--poses", "sfm", "--fps", "2", "--out", str(seq)], check=True, capture_output=True)
+        t_import = time.time() - t
+        subprocess.run(cli + ["reconstruct", str(seq), "--out", str(mesh)], check=True, capture_output=True)
+        sfm = json.loads((seq / "sfm.json").read_text())
+        m = json.loads((mesh / "metrics.json").read_text())
+    ck = sfm.get("checks") or {}
+    return {"command": f"pavemap import folder {clip}/images --poses sfm --fps 2; pavemap reconstruct",
+            "frames": sfm.get("images"), "registered": sfm.get("registered"), "method": sfm.get("method"),
+            "other_parts": sfm.get("other_parts"), "max_accel_mps2": ck.get("max_accel_mps2"),
+            "accel_unchecked": ck.get("accel_unchecked"), "import_seconds": round(t_import, 1),
+            "camera_height_stage1_m": m.get("camera_height_init"), "heldout_frames_every": 10,
+            "psnr_heldout_db": m.get("psnr"), "heldout_textured_share": m.get("heldout_textured_share"),
+            "psnr_heldout_all_covered_db": m.get("psnr_untextured_included"), "coverage": m.get("coverage"),
+            "stage1_seconds": m.get("seconds")}
+
+
 def main() -> None:
-    """``python bench/sfm_bench.py [kitti] [nuscenes] [nuscenes2] [synthetic]``: the named parts (default all),
+    """``python bench/sfm_bench.py [kitti] [nuscenes] [nuscenes2] [synthetic] [stage1] [stage1_2]``: the named
+    parts (default all),
     merged into the results; each part records the commit and the machine's load."""
-    names = sys.argv[1:] or ["kitti", "nuscenes", "nuscenes2", "synthetic"]
+    names = sys.argv[1:] or ["kitti", "nuscenes", "nuscenes2", "synthetic", "stage1", "stage1_2"]
     out = json.loads(OUT.read_text()) if OUT.is_file() else {}
     parts = (("kitti", kitti), ("nuscenes", nuscenes), ("nuscenes2", lambda: nuscenes("nuscenes-front-clip-2")),
-             ("synthetic", synthetic_steps))
+             ("synthetic", synthetic_steps), ("stage1", lambda: stage1("nuscenes-front-clip")),
+             ("stage1_2", lambda: stage1("nuscenes-front-clip-2")))
     for name, fn in parts:
         if name not in names:
             continue

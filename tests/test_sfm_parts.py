@@ -85,7 +85,7 @@ def test_planar_motion_alone_follows_the_turn(turn_drive):
 
 
 @pytest.mark.slow
-def test_grey_middle_third_keeps_the_longest_part_and_names_the_rest(turn_drive, tmp_path):
+def test_grey_middle_third_is_imported_as_two_parts_with_the_grey_part_named(turn_drive, tmp_path):
     from pavemap.ingest.folder import import_folder
     from pavemap.io.sequence import read_sequence
 
@@ -97,7 +97,7 @@ def test_grey_middle_third_keeps_the_longest_part_and_names_the_rest(turn_drive,
     for k in grey:  # a covered lens / a wall of fog: nothing to match
         w, h = Image.open(files[k]).size
         Image.new("RGB", (w, h), (128, 128, 128)).save(files[k])
-    import_folder(src, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT)
+    import_folder(src, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT, fps=2.0)
     s = read_sequence(tmp_path / "seq")
     report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
     kept = [f.index for f in s.frames]
@@ -107,6 +107,20 @@ def test_grey_middle_third_keeps_the_longest_part_and_names_the_rest(turn_drive,
     assert all(dropped[k] for k in dropped)  # each with its reason
     assert [p for p in report["parts"] if p[2]] == [[0, 6, True]]
     assert "not registered" in dropped[9]
+    # the textured stretch after the grey one is a drive of its own, in its own metric frame
+    others = report["other_parts"]
+    imported = [r for r in others if r["status"] == "imported"]
+    assert len(imported) == 1 and imported[0]["kept"] == [13, 18], others
+    part = read_sequence(tmp_path / "seq" / imported[0]["folder"])
+    assert [f.index for f in part.frames] == list(range(13, 19))
+    assert [f.timestamp for f in part.frames] == pytest.approx([k / 2.0 for k in range(13, 19)])
+    C = np.stack([np.asarray(f.views["CAM_FRONT"].T_world_cam)[:3, 3] for f in part.frames])
+    assert similarity_rmse_pct(C, gt[13:19]) <= 2.0
+    step = np.linalg.norm(np.diff(C, axis=0), axis=1).mean()
+    assert step == pytest.approx(np.linalg.norm(np.diff(gt[13:19], axis=0), axis=1).mean(), rel=0.1)  # metric
+    assert (tmp_path / "seq" / imported[0]["folder"] / "sfm.json").is_file()
+    # the grey frames were tried on their own and named: not imported, with SfM's reason and diagnosis
+    assert not any(set(range(r["kept"][0], r["kept"][1] + 1)) & set(grey) for r in imported)
 
 
 def test_camera_that_never_moves_is_refused_with_a_diagnosis(turn_drive, tmp_path):

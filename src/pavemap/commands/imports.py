@@ -131,6 +131,15 @@ def _say_sfm(out: Path) -> None:
     typer.echo(f"poses: {r.get('method', 'SfM')}, {r.get('registered')} of {r.get('images')} frames kept"
                + (f", {len(dropped)} dropped (why: {SFM_REPORT})" if dropped else "")
                + f", scale from {r.get('scale_source')}; diagnosis: {rep}, {Path(out) / SFM_FIGURE}")
+    for part in _other_parts(out):
+        a, b = part["frames"]
+        where = Path(out) / part["folder"]
+        if part["status"] == "imported":
+            lo, hi = part["kept"]
+            typer.echo(f"another part of the clip: frames {lo}-{hi} ({part['frames_kept']} kept) imported as a drive "
+                       f"of its own (no link to this one across the gap) -> {where}; map it with pavemap run {where}")
+        else:
+            typer.echo(f"frames {a}-{b}: not imported ({part['reason']}); diagnosis: {where / SFM_REPORT}")
 
 
 def _geo(gps: str | None, offset: float | None, origin: str | None, oxts_first: int | None = None,  # noqa: ANN202
@@ -226,8 +235,8 @@ def folder_cmd(
                         geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm), ego_mask=ego_mask,
                         refine_intrinsics=refine_intrinsics, fps=fps,
                         movers=_movers(poses, segmenter, segmenter_weights, no_semantics, device))
-    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device,
-                                  segmenter_weights))
+    _done(seq, out, _semantics_with_parts(seq, out, labels, class_map, segmenter, no_semantics, camera_height,
+                                          device, segmenter_weights))
 
 
 @imports_app.command("video")
@@ -256,8 +265,30 @@ def video_cmd(
     seq = import_video(video, cameras, poses, out, fps=_fps(fps), start=start, stop=stop, max_frames=max_frames,
                        camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm),
                        movers=_movers(poses, segmenter, segmenter_weights, no_semantics, device))
-    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, camera_height, device,
-                                  segmenter_weights))
+    _done(seq, out, _semantics_with_parts(seq, out, labels, class_map, segmenter, no_semantics, camera_height,
+                                          device, segmenter_weights))
+
+
+def _semantics_with_parts(seq: Sequence, out: Path, *args: object) -> str:
+    """:func:`add_semantics` (``args`` after ``seq``) on the import and on every other part of the clip SfM imported
+    as a sequence of its own (:mod:`pavemap.ingest.parts`)."""
+    from pavemap.io.sequence import read_sequence
+
+    said = add_semantics(seq, *args)  # type: ignore[arg-type]
+    for folder in _other_parts(out, imported=True):
+        add_semantics(read_sequence(out / folder["folder"]), *args)  # type: ignore[arg-type]
+    return said
+
+
+def _other_parts(out: Path, imported: bool = False) -> list[dict]:
+    """``sfm.json``'s ``other_parts`` rows (only the imported ones with ``imported``); none without SfM."""
+    import json
+
+    from pavemap.sfm.report import SFM_REPORT
+
+    rep = Path(out) / SFM_REPORT
+    rows = json.loads(rep.read_text()).get("other_parts") or [] if rep.is_file() else []
+    return [r for r in rows if not imported or r.get("status") == "imported"]
 
 
 def _movers(poses: str, segmenter: str | None, weights: Path | None, no_semantics: bool, device: str):  # noqa: ANN202

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pavemap.errors import PavemapError
 from pavemap.geo.attach import GeoInput, attach_geo
+from pavemap.ingest.folder import SfmImport, sfm_import
+from pavemap.ingest.parts import import_other_parts
 from pavemap.io.atomic import atomic_path
 from pavemap.io.egomask import resolve_ego_mask, store_ego_masks
 from pavemap.io.folder import DEFAULT_CLASSES, PoseRow, image_size, read_cameras_json, read_poses_csv
@@ -150,6 +153,12 @@ def import_video(
         res = sfm_poses_or_report(out, paths, cam, camera_height=camera_height, ego_mask=ego, times=times,
                                   movers=movers)
         Ts = res.T_world_cam
+        kept = np.flatnonzero(res.registered)
+        spec = SfmImport(paths[0].parent, {cam.name: cam}, name or video.stem, list(DEFAULT_CLASSES), geo, None,
+                         camera_height, False, movers, ego, times, nominal_times=False)
+        res.info["other_parts"] = import_other_parts(  # before the frames they use are dropped here
+            paths, (int(kept[0]), int(kept[-1])), out,
+            lambda imgs, dest, a: sfm_import(replace(spec, name=f"{spec.name}-frames-{a}"), imgs, dest, a, False))
         for i in np.nonzero(~res.registered)[0]:  # frames SfM could not register are dropped
             paths[i].unlink(missing_ok=True)
     else:
