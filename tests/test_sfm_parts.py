@@ -86,7 +86,6 @@ def test_planar_motion_alone_follows_the_turn(turn_drive):
 
 @pytest.mark.slow
 def test_grey_middle_third_is_imported_as_two_parts_with_the_grey_part_named(turn_drive, tmp_path):
-    from pavemap.ingest.folder import import_folder
     from pavemap.io.sequence import read_sequence
 
     images, cameras, gt = turn_drive
@@ -97,11 +96,20 @@ def test_grey_middle_third_is_imported_as_two_parts_with_the_grey_part_named(tur
     for k in grey:  # a covered lens / a wall of fog: nothing to match
         w, h = Image.open(files[k]).size
         Image.new("RGB", (w, h), (128, 128, 128)).save(files[k])
-    import_folder(src, cameras, "sfm", tmp_path / "seq", camera_height=MOUNT_HEIGHT, fps=2.0)
+    from typer.testing import CliRunner
+
+    from pavemap.cli import app
+
+    r = CliRunner().invoke(app, ["import", "folder", str(src), "--cameras", str(cameras), "--poses", "sfm",
+                                 "--fps", "2", "--camera-height", str(MOUNT_HEIGHT), "--segmenter", "corridor",
+                                 "--out", str(tmp_path / "seq")])
+    assert r.exit_code == 0, r.output
+    assert "frames 13-18 (6 kept) imported as a drive of its own" in r.output, r.output
     s = read_sequence(tmp_path / "seq")
     report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
     kept = [f.index for f in s.frames]
     assert kept == list(range(0, 7))  # the longer textured part (7 frames against 6)
+    assert s.cameras["CAM_FRONT"].height_m == pytest.approx(MOUNT_HEIGHT)  # the scale, for stage 1
     dropped = {int(k): v for k, v in report["dropped"].items()}
     assert set(grey) <= set(dropped) and set(range(13, 19)) <= set(dropped)
     assert all(dropped[k] for k in dropped)  # each with its reason
@@ -112,6 +120,7 @@ def test_grey_middle_third_is_imported_as_two_parts_with_the_grey_part_named(tur
     imported = [r for r in others if r["status"] == "imported"]
     assert len(imported) == 1 and imported[0]["kept"] == [13, 18], others
     part = read_sequence(tmp_path / "seq" / imported[0]["folder"])
+    assert all(v.semantics for f in part.frames for v in f.views.values())  # the part got its semantics too
     assert [f.index for f in part.frames] == list(range(13, 19))
     assert [f.timestamp for f in part.frames] == pytest.approx([k / 2.0 for k in range(13, 19)])
     C = np.stack([np.asarray(f.views["CAM_FRONT"].T_world_cam)[:3, 3] for f in part.frames])

@@ -396,6 +396,30 @@ def preset_for(seq: object) -> tuple[str, str]:
     return "nuscenes", f"{n} cameras: a surround rig, so the nuscenes preset"
 
 
+def mount_height_prior(cfg: RunConfig, seq: object, spec: str | os.PathLike | None,
+                       overrides: Iterable[str] = ()) -> str | None:
+    """Set ``cfg.mesh.camera_height`` to the sequence's mount height (``Camera.height_m``: what an SfM import
+    scaled the path to) unless an override or the YAML ``spec`` sets it; a rig only when its cameras agree within
+    5 cm. Returns what was done, one line, or None when nothing changed."""
+    heights = [c.height_m for c in (getattr(seq, "cameras", None) or {}).values() if c.height_m is not None]
+    if not heights or max(heights) - min(heights) > 0.05:
+        return None
+    if any(str(o).split("=", 1)[0].strip() == "mesh.camera_height" for o in overrides):
+        return None
+    if spec is not None and str(spec) not in PRESETS and Path(spec).is_file():
+        from pavemap.io.yamlfile import read_yaml
+
+        data = read_yaml(Path(spec), "config") or {}
+        if isinstance(data, dict) and "camera_height" in (data.get("mesh") or {}):
+            return None
+    h = float(sum(heights) / len(heights))
+    if abs(h - cfg.mesh.camera_height) < 1e-6:
+        return None
+    before, cfg.mesh.camera_height = cfg.mesh.camera_height, h
+    return (f"camera height prior {h:.2f} m from the sequence (the import's --camera-height; the preset says "
+            f"{before:.2f} m; --set mesh.camera_height=... to change)")
+
+
 def load_config(spec: str | os.PathLike | None, default_preset: str = "nuscenes",
                 overrides: Iterable[str] = ()) -> RunConfig:
     """Resolve ``--config`` and ``--set``: a preset name, a YAML file (optionally naming a base ``preset``,
@@ -429,4 +453,5 @@ def dump_config(cfg: RunConfig) -> str:
 
 __all__ = ["PRESETS", "SECTIONS", "DetectorConfig", "FilterConfig", "OutputConfig", "RunConfig", "apply_overrides",
            "apply_text_overrides", "coerce", "dump_config", "field_names", "field_types", "load_config",
+           "mount_height_prior",
            "parse_overrides", "preset_config", "preset_for"]

@@ -58,6 +58,9 @@ class Camera:
     height: int
     K: np.ndarray
     ego_mask: str | None = None  # sequence-relative PNG (255 = the ego vehicle: bonnet, dashboard), or None
+    # the mount's height over the road (m) the import knew: SfM scaled the path to it, or the user gave it;
+    # stage 1's camera-height prior when the config does not set one. None: not known
+    height_m: float | None = None
 
     def scaled(self, scale: float) -> Camera:
         """The same camera for an image resized by ``scale`` (pixel-centre convention)."""

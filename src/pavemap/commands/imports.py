@@ -170,11 +170,12 @@ def kitti_cmd(
     no_semantics: bool = _NO_SEM, device: str = _DEVICE, overwrite: bool = _OVERWRITE,
 ) -> None:
     """KITTI odometry sequence → sequence folder."""
-    from pavemap.ingest.kitti import import_kitti
+    from pavemap.ingest.kitti import KITTI_MOUNT_HEIGHT_M, import_kitti
 
     seq = import_kitti(root, sequence, out, camera=camera, start=start, stop=stop, stride=stride, lidar=lidar,
                        geo=_geo(str(oxts) if oxts else None, None, geo_origin, oxts_first, gps_lever_arm))
-    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, 1.65, device, segmenter_weights))
+    _done(seq, out, add_semantics(seq, labels, class_map, segmenter, no_semantics, KITTI_MOUNT_HEIGHT_M, device,
+                                  segmenter_weights))
 
 
 @imports_app.command("nuscenes")

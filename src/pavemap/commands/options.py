@@ -100,11 +100,14 @@ def resolve_config(seq: Sequence | None, config: str | None, sets: list[str] | N
 
     Prints which preset is used and why, so a front-camera drive never silently gets the surround preset.
     """
-    from pavemap.config import load_config, preset_for
+    from pavemap.config import load_config, mount_height_prior, preset_for
 
     rig, why = preset_for(seq) if seq is not None else ("nuscenes", "no sequence, so the nuscenes preset")
     overrides = [*shortcut_overrides(shortcuts or {}), *(sets or [])]
     cfg = load_config(config, default_preset=rig, overrides=overrides)
+    said = mount_height_prior(cfg, seq, config, overrides)
+    if said:
+        typer.echo(said, err=True)
     if config is None:
         note = f"preset {cfg.preset} ({why}; --config to choose)"
     elif config == cfg.preset:

@@ -80,6 +80,7 @@ def import_folder(
     if len(cameras) != 1:
         raise PavemapError("--poses sfm supports one camera; give a poses.csv for a multi-camera rig")
     cam = next(iter(cameras.values()))
+    cam.height_m = camera_height  # the path is scaled to it: stage 1's prior (Camera.height_m)
     images = per_cam[cam.name]
     spec.ego, _ = resolve_ego_mask(ego_mask, images, cam.width, cam.height, default_auto=True)
     if fps is not None:  # a claim about the images, not a measurement: SfmChecks.nominal_times

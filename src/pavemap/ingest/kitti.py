@@ -15,6 +15,9 @@ from pavemap.io.kitti import KITTI_RAW, kitti_to_world, lidar_depth, read_calib,
 from pavemap.io.sequence import SequenceError, save_depth, write_sequence
 from pavemap.types import Camera, Frame, SemanticClass, Sequence, View
 
+#: the KITTI cameras' height over the road (Geiger et al., IJRR 2013: the rig's figure)
+KITTI_MOUNT_HEIGHT_M = 1.65
+
 
 def _find_poses(root: Path, seq_dir: Path, sequence: str) -> Path:
     for p in (root / "poses" / f"{sequence}.txt", seq_dir / "poses.txt", root / "poses.txt"):
@@ -84,7 +87,7 @@ def import_kitti(
     K = calib.intrinsics(camera)
     w, h = image_size(images[0])
     name = f"cam{camera}"
-    cam = Camera(name, w, h, K)
+    cam = Camera(name, w, h, K, height_m=KITTI_MOUNT_HEIGHT_M)
     T_world = kitti_to_world(T_all[idx], t_cam)
     velo_dir = seq_dir / "velodyne"
     use_lidar = lidar and velo_dir.is_dir()

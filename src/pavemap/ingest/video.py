@@ -149,6 +149,7 @@ def import_video(
     times = np.asarray(stamps)
     ego = None
     if str(poses).lower() == "sfm":
+        cam.height_m = camera_height  # the path is scaled to it: stage 1's prior (Camera.height_m)
         ego, _ = resolve_ego_mask(None, paths, cam.width, cam.height, default_auto=True)  # bonnet: kept out of SfM
         res = sfm_poses_or_report(out, paths, cam, camera_height=camera_height, ego_mask=ego, times=times,
                                   movers=movers)

@@ -263,6 +263,7 @@ class CameraJson(BaseModel):
     height: Annotated[int, _int(1, 100_000)]
     K: Annotated[list[list[Entry]], _matrix(3, 3)]  # (3, 3) pinhole intrinsics
     ego_mask: OptPath = None
+    height_m: Annotated[float | None, _num(0.05, 100.0)] = None  # the mount's height over the road, metres
 
 
 class ClassJson(BaseModel):

@@ -80,7 +80,7 @@ def sequence_from_dict(d: object, root: Path | None = None) -> Sequence:
         why = check_intrinsics(K)
         if why:
             raise SequenceError(file, f"cameras.{name}.K: {why}")
-        cameras[name] = Camera(name, cam.width, cam.height, K, cam.ego_mask)
+        cameras[name] = Camera(name, cam.width, cam.height, K, cam.ego_mask, cam.height_m)
 
     frames: list[Frame] = []
     last_index: int | None = None
@@ -135,7 +135,8 @@ def sequence_to_dict(seq: Sequence) -> dict:
         ],
         "cameras": {
             n: {"width": c.width, "height": c.height, "K": np.asarray(c.K, dtype=float).tolist(),
-                **({"ego_mask": c.ego_mask} if c.ego_mask else {})}  # masks/<camera>.png, 255 = ego vehicle
+                **({"ego_mask": c.ego_mask} if c.ego_mask else {}),  # masks/<camera>.png, 255 = ego vehicle
+                **({"height_m": float(c.height_m)} if c.height_m is not None else {})}
             for n, c in seq.cameras.items()
         },
         "frames": [

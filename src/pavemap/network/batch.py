@@ -134,12 +134,14 @@ def _cluster_tiles(threads: int, retries: int, rows: list[dict]) -> Callable[[li
 
 def drive_config(manifest: Manifest, drive: Drive, seq: object):  # noqa: ANN201 - RunConfig
     """The drive's config: the manifest's (else the preset that fits the rig), then the overrides."""
-    from pavemap.config import load_config, preset_for
+    from pavemap.config import load_config, mount_height_prior, preset_for
 
     where = f"{manifest.path}: drives ({drive.name})"
+    overrides = (*manifest.overrides, *drive.overrides)
     try:
-        return load_config(manifest.config, default_preset=preset_for(seq)[0],
-                           overrides=(*manifest.overrides, *drive.overrides))
+        cfg = load_config(manifest.config, default_preset=preset_for(seq)[0], overrides=overrides)
+        mount_height_prior(cfg, seq, manifest.config, overrides)
+        return cfg
     except PavemapError as e:
         raise PavemapError(f"{where}: {e}") from None
 
