@@ -132,6 +132,35 @@ def test_grey_middle_third_is_imported_as_two_parts_with_the_grey_part_named(tur
     assert not any(set(range(r["kept"][0], r["kept"][1] + 1)) & set(grey) for r in imported)
 
 
+@pytest.mark.slow
+def test_a_video_cut_by_a_grey_stretch_is_imported_as_two_parts(turn_drive, tmp_path):
+    """The video importer's other part: frames extracted once, the part's copied under ``parts/``, measured
+    frame times carried over, and the main import's folder keeps only its own frames."""
+    import cv2
+
+    from pavemap.ingest.video import import_video
+    from pavemap.io.sequence import read_sequence
+
+    images, cameras, gt = turn_drive
+    files = sorted(images.iterdir())
+    h, w = cv2.imread(str(files[0])).shape[:2]
+    vw = cv2.VideoWriter(str(tmp_path / "drive.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, (w, h))
+    for k, f in enumerate(files):
+        vw.write(np.full((h, w, 3), 128, np.uint8) if 7 <= k < 13 else cv2.imread(str(f)))
+    vw.release()
+    import_video(tmp_path / "drive.avi", cameras, "sfm", tmp_path / "seq", fps=None, camera_height=MOUNT_HEIGHT)
+    report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
+    main = read_sequence(tmp_path / "seq")
+    assert [f.index for f in main.frames] == list(range(0, 7))
+    assert len(list((tmp_path / "seq" / "images" / "CAM_FRONT").iterdir())) == 7
+    imported = [r for r in report["other_parts"] if r["status"] == "imported"]
+    assert len(imported) == 1 and imported[0]["kept"] == [13, 18], report["other_parts"]
+    part = read_sequence(tmp_path / "seq" / imported[0]["folder"])
+    assert [f.timestamp for f in part.frames] == pytest.approx([k / 2.0 for k in range(13, 19)], abs=0.01)
+    C = np.stack([np.asarray(f.views["CAM_FRONT"].T_world_cam)[:3, 3] for f in part.frames])
+    assert similarity_rmse_pct(C, gt[13:19]) <= 2.0
+
+
 def test_camera_that_never_moves_is_refused_with_a_diagnosis(turn_drive, tmp_path):
     from pavemap.ingest.folder import import_folder
 
