@@ -46,6 +46,38 @@ def test_real_frame_road_fraction_and_bonnet_masked():
     assert (lab[: int(0.3 * 360)] == ids["sky"]).mean() > 0.1  # the sky over the street
 
 
+@needs_data
+def test_sfm_masks_and_semantics_label_each_image_once(tmp_path, monkeypatch):
+    """An SfM import labels its keyframes for the vehicle masks; the sequence's semantics then reuse those labels
+    (same pixels, same network): the network runs once per image, and the labels are the same as fresh ones."""
+    import cv2
+
+    from pavemap.io.sequence import load_rgb
+    from pavemap.segment.espnet import EspnetSegmenter
+    from pavemap.segment.movers import movable_masks
+
+    paths = []
+    for k, p in enumerate(sorted(CLIP.glob("*.jpg"))[:3]):
+        paths.append(tmp_path / f"{k}.png")
+        cv2.imwrite(str(paths[-1]), cv2.resize(cv2.imread(str(p)), (480, 270), interpolation=cv2.INTER_AREA))
+    masks, _ = movable_masks("espnetv2", V2, device="cpu")
+    seg = masks.segmenter
+    runs = []
+    real = seg.logits
+    monkeypatch.setattr(seg, "logits", lambda ims: runs.append(len(ims)) or real(ims))
+    for p in paths:
+        assert masks(p) is not None
+    imgs = [load_rgb(p) for p in paths]
+    again = seg.segment(imgs)
+    assert runs == [1, 1, 1]  # the second pass came from memory
+    fresh = EspnetSegmenter("espnetv2", V2, device="cpu").segment(imgs)
+    assert all(np.array_equal(a, b) for a, b in zip(again, fresh, strict=True))
+    other = imgs[0].copy()
+    other[:10] = 255  # other pixels: labelled anew
+    seg.segment([other])
+    assert runs == [1, 1, 1, 1]
+
+
 def test_missing_weights_name_the_file_and_where_to_put_it(tmp_path, monkeypatch):
     from pavemap.segment import espnet
 

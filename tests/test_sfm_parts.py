@@ -337,7 +337,9 @@ def test_sfm_masks_what_moves(turn_drive, tmp_path):
     assert report["movers"]["frames_masked"] == len(gt)
     assert report["movers"]["mean_share"] == pytest.approx(1 / 9, rel=0.05)
     assert report["registered"] >= len(gt) // 2  # a ninth of a small synthetic frame holds many of its features
-    assert len(half) == len(gt)
+    # every frame masked for the whole clip's SfM (and again where a stretch left out is tried on its own)
+    assert set(half) == set(images.iterdir()) and len(half) == len(gt) + sum(
+        r["frames"][1] - r["frames"][0] + 1 for r in report["other_parts"])
     masks, said = movable_masks("none")
     assert masks is None and "no vehicle masks" in said
     from pavemap.user_cache import weight_search_dirs

@@ -71,8 +71,9 @@ _GEO_ORIGIN = typer.Option(None, "--geo-origin", help="LAT,LON[,ALT[,HEADING]] o
 
 def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, segmenter: str | None,
                   no_semantics: bool, camera_height: float | None, device: str = "auto",
-                  segmenter_weights: Path | None = None) -> str:
-    """Attach semantics to an imported sequence; returns a short description of what was done."""
+                  segmenter_weights: Path | None = None, shared: object | None = None) -> str:
+    """Attach semantics to an imported sequence; returns a short description of what was done. ``shared``: the
+    segmenter SfM's vehicle masks used (what it labelled is reused)."""
     from pavemap.segment import attach_label_folder, corridor_semantics, segment_sequence
     from pavemap.segment.auto import GreyImagesError, WeightsMissingError, arch_of, espnet_semantics
     from pavemap.segment.espnet import ARCHS
@@ -90,7 +91,7 @@ def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, seg
         return "corridor fallback"
     if spec == "auto" or spec in ARCHS:
         try:
-            espnet_semantics(seq, arch_of(spec), segmenter_weights, device)
+            espnet_semantics(seq, arch_of(spec), segmenter_weights, device, segmenter=shared)  # type: ignore[arg-type]
             return f"{arch_of(spec)} segmenter"
         except (GreyImagesError, WeightsMissingError) as e:
             if spec != "auto":
@@ -232,12 +233,12 @@ def folder_cmd(
     GPS: lat, lon (optional alt, heading) columns in poses.csv, or --gps FILE|exif; or --geo-origin by hand."""
     from pavemap.ingest.folder import import_folder
 
+    movers = _movers(poses, segmenter, segmenter_weights, no_semantics, device)
     seq = import_folder(images, cameras, poses, out, name=name, camera_height=camera_height,
                         geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm), ego_mask=ego_mask,
-                        refine_intrinsics=refine_intrinsics, fps=fps,
-                        movers=_movers(poses, segmenter, segmenter_weights, no_semantics, device))
-    _done(seq, out, _semantics_with_parts(seq, out, labels, class_map, segmenter, no_semantics, camera_height,
-                                          device, segmenter_weights))
+                        refine_intrinsics=refine_intrinsics, fps=fps, movers=movers)
+    _done(seq, out, _semantics_with_parts(seq, out, movers, labels, class_map, segmenter, no_semantics,
+                                          camera_height, device, segmenter_weights))
 
 
 @imports_app.command("video")
@@ -265,19 +266,20 @@ def video_cmd(
 
     seq = import_video(video, cameras, poses, out, fps=_fps(fps), start=start, stop=stop, max_frames=max_frames,
                        camera_height=camera_height, geo=_geo(gps, gps_offset, geo_origin, lever_arm=gps_lever_arm),
-                       movers=_movers(poses, segmenter, segmenter_weights, no_semantics, device))
-    _done(seq, out, _semantics_with_parts(seq, out, labels, class_map, segmenter, no_semantics, camera_height,
-                                          device, segmenter_weights))
+                       movers=(movers := _movers(poses, segmenter, segmenter_weights, no_semantics, device)))
+    _done(seq, out, _semantics_with_parts(seq, out, movers, labels, class_map, segmenter, no_semantics,
+                                          camera_height, device, segmenter_weights))
 
 
-def _semantics_with_parts(seq: Sequence, out: Path, *args: object) -> str:
+def _semantics_with_parts(seq: Sequence, out: Path, movers: object | None, *args: object) -> str:
     """:func:`add_semantics` (``args`` after ``seq``) on the import and on every other part of the clip SfM imported
-    as a sequence of its own (:mod:`pavemap.ingest.parts`)."""
+    as a sequence of its own (:mod:`pavemap.ingest.parts`), with the segmenter SfM's vehicle masks used."""
     from pavemap.io.sequence import read_sequence
 
-    said = add_semantics(seq, *args)  # type: ignore[arg-type]
+    shared = getattr(movers, "segmenter", None)
+    said = add_semantics(seq, *args, shared=shared)  # type: ignore[arg-type]
     for folder in _other_parts(out, imported=True):
-        add_semantics(read_sequence(out / folder["folder"]), *args)  # type: ignore[arg-type]
+        add_semantics(read_sequence(out / folder["folder"]), *args, shared=shared)  # type: ignore[arg-type]
     return said
 
 

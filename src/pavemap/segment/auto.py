@@ -75,15 +75,19 @@ def camera_ego_masks(seq: Sequence, detect: bool = True) -> dict[str, np.ndarray
 
 def espnet_semantics(seq: Sequence, arch: str = DEFAULT, weights: str | os.PathLike | None = None,
                      device: str = "auto", out_root: str | os.PathLike | None = None, batch: int = 4,
-                     width: int | None = None) -> Sequence:
+                     width: int | None = None, segmenter: EspnetSegmenter | None = None) -> Sequence:
     """Label every view of ``seq`` with the ESPNet / ESPNetv2 segmenter, the ego vehicle masked (see
-    :func:`segment_sequence` for ``out_root``). Grey images or missing weights: a one-line error."""
+    :func:`segment_sequence` for ``out_root``). Grey images or missing weights: a one-line error.
+    ``segmenter``: one already made for this ``arch`` and ``width`` (the import's, which labelled SfM's
+    vehicle masks: what it remembers is not labelled again)."""
     check_colour(seq)
     try:
         find_weights(arch, weights)
     except PavemapError as e:
         raise WeightsMissingError(str(e)) from None
-    seg = EspnetSegmenter(arch, weights, device, width)
+    same = (segmenter is not None and segmenter.arch.name == arch and segmenter.width == width
+            and segmenter.path == find_weights(arch, weights))
+    seg = segmenter if same else EspnetSegmenter(arch, weights, device, width)
     return segment_sequence(seq, seg, batch, camera_ego_masks(seq), out_root)
 
 

@@ -190,6 +190,9 @@ class EspnetSegmenter:
         self.classes: list[SemanticClass] = list(lm.classes)
         self.ego_id = lm.id_of("ego")
         self.dtype = torch.float32
+        # image digest -> (shape, zlib'd network-size labels): what an import labels for SfM's vehicle masks is
+        # not labelled again for the sequence's semantics (:meth:`remember`)
+        self.memo: dict[bytes, tuple[tuple[int, int], bytes]] | None = None
         log.info("segmenter %s (%s) on %s, input width %s", self.arch.name, self.path, self.device,
                  width or f"the image's, {MIN_WIDTH}-{MAX_WIDTH}")
 
@@ -227,12 +230,40 @@ class EspnetSegmenter:
         with torch.inference_mode():
             return self.model(self._prepare(images))
 
+    def remember(self) -> EspnetSegmenter:
+        """Keep every image's labels (compressed, at the network's size, ~10-30 kB each) so that the same pixels
+        are not run through the network twice; returns self."""
+        self.memo = {} if self.memo is None else self.memo
+        return self
+
+    def _network_labels(self, images: list[np.ndarray]) -> list[np.ndarray]:
+        """(h, w) uint8 labels at the network's size per image, from the memo where it has them."""
+        import hashlib
+        import zlib
+
+        import torch
+
+        keys = [hashlib.blake2b(np.ascontiguousarray(im).data, digest_size=20,
+                                person=str(im.shape).encode()[:16]).digest() if self.memo is not None else b""
+                for im in images]
+        todo = [i for i, k in enumerate(keys) if self.memo is None or k not in self.memo]
+        out: dict[int, np.ndarray] = {}
+        if todo:
+            lab = self.logits([images[i] for i in todo]).argmax(1).to(torch.uint8).cpu().numpy()  # (B, h, w)
+            for j, i in enumerate(todo):
+                out[i] = lab[j]
+                if self.memo is not None:
+                    self.memo[keys[i]] = (lab[j].shape, zlib.compress(lab[j].tobytes(), 1))
+        for i in set(range(len(images))) - set(todo):
+            shape, z = self.memo[keys[i]]  # type: ignore[index]
+            out[i] = np.frombuffer(zlib.decompress(z), np.uint8).reshape(shape)
+        return [out[i] for i in range(len(images))]
+
     def segment(self, images: list[np.ndarray], ego: list[np.ndarray | None] | None = None) -> list[np.ndarray]:
         """(H, W, 3) uint8 RGB each → (H, W) uint8 ``cityscapes`` ids each; ``ego`` (H, W) bool masks → ``ego``."""
         import cv2
-        import torch
 
-        lab = self.logits(images).argmax(1).to(torch.uint8).cpu().numpy()  # (B, h, w)
+        lab = self._network_labels(images)
         out = []
         for i, im in enumerate(images):
             full = cv2.resize(lab[i], (im.shape[1], im.shape[0]), interpolation=cv2.INTER_NEAREST)

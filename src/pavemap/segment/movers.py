@@ -28,9 +28,11 @@ def movable_masks(spec: str | None = "auto", weights: str | os.PathLike | None =
 
     ``spec``: the ``--segmenter`` value (``auto``: ESPNetv2 when its weights are found; ``espnet`` / ``espnetv2``
     required; anything else, e.g. ``none``, ``corridor`` or a .pt file: no masks). ``grow``: the masks are
-    dilated by this share of the image width (a vehicle's outline and its shadow's edge).
+    dilated by this share of the image width (a vehicle's outline and its shadow's edge). The function's
+    ``segmenter`` remembers what it labelled (:meth:`~pavemap.segment.espnet.EspnetSegmenter.remember`): the
+    import's semantics take it, and the keyframes SfM masked are not labelled twice.
     """
-    from pavemap.segment.espnet import ARCHS, DEFAULT, EspnetSegmenter, find_weights, is_grey
+    from pavemap.segment.espnet import ARCHS, DEFAULT, EspnetSegmenter, find_weights
 
     arch = DEFAULT if spec in (None, "auto") else spec
     if arch not in ARCHS:
@@ -41,23 +43,31 @@ def movable_masks(spec: str | None = "auto", weights: str | os.PathLike | None =
         if spec not in (None, "auto"):
             raise
         return None, f"SfM: no vehicle masks ({e})"
-    seg = EspnetSegmenter(arch, weights, device=device)
-    movable = np.array([c.movable and c.name != "ego" for c in seg.classes], dtype=bool)
+    seg = EspnetSegmenter(arch, weights, device=device).remember()
+    return _Masker(seg, grow), f"SfM: vehicles and people masked by the {seg.arch.name} segmenter ({seg.path.name})"
 
-    def masks(path: Path) -> np.ndarray | None:
+
+class _Masker:
+    """image path -> (H, W) bool movable mask (None on a grey image). ``segmenter`` remembers what it labelled:
+    the import's semantics reuse it (:func:`pavemap.segment.auto.espnet_semantics`)."""
+
+    def __init__(self, segmenter: object, grow: float):
+        self.segmenter, self.grow = segmenter, grow
+        self.movable = np.array([c.movable and c.name != "ego" for c in segmenter.classes], dtype=bool)  # type: ignore[attr-defined]
+
+    def __call__(self, path: Path) -> np.ndarray | None:
         import cv2
 
         from pavemap.io.sequence import load_rgb
+        from pavemap.segment.espnet import is_grey
 
         rgb = load_rgb(path)
         if is_grey(rgb):
             return None
-        lab = seg.segment([rgb])[0]
-        m = movable[np.minimum(lab, len(movable) - 1)]
-        k = max(1, int(round(grow * m.shape[1])))
+        lab = self.segmenter.segment([rgb])[0]  # type: ignore[attr-defined]
+        m = self.movable[np.minimum(lab, len(self.movable) - 1)]
+        k = max(1, int(round(self.grow * m.shape[1])))
         return cv2.dilate(m.astype(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8)) > 0
-
-    return masks, f"SfM: vehicles and people masked by the {seg.arch.name} segmenter ({seg.path.name})"
 
 
 __all__ = ["MoverMasks", "movable_masks"]
