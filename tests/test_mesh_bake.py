@@ -382,3 +382,20 @@ def test_texture_check_marks_where_a_vehicle_is_in_the_texture_and_nothing_on_a_
                             min_views=k, block=5).contested.numpy() for k in (1, 2)]
     assert int(solo.sum()) > 100 and marked[0].sum() > marked[1].sum()
     assert contested_patches(marked[1], g.spec.res, 1.0)[1] == []
+
+
+def test_only_ground_classes_colour_the_texture():
+    """A wall, a trailer or a bus the segmenter calls "building" casts its side along its rays onto the road behind
+    it: with the ground channels given, its pixels leave the colour bake (unlabelled ones stay)."""
+    from pavemap.mesh.bake import Hits, bake_exposed
+
+    surface = HeightField(0.0, 0.0, 1.0, torch.zeros(2, 2, dtype=torch.float64), torch.ones(2, 2, dtype=torch.bool))
+    vid = torch.tensor([[0, 1, 2]] * 3)
+    w = torch.tensor([[1.0, 0.0, 0.0]] * 3)
+    c8 = torch.tensor([[100, 100, 100], [250, 0, 0], [120, 120, 120]], dtype=torch.uint8)  # road, building, unknown
+    hits = [Hits(vid, w, c8, torch.zeros(3, dtype=torch.long), torch.tensor([0, 1, -1]))]
+    ground = torch.tensor([True, False])
+    rgb_all = bake_exposed(surface, None, None, 1.0, hits=hits)[0]
+    rgb_ground = bake_exposed(surface, None, None, 1.0, hits=hits, ground=ground)[0]
+    assert rgb_all[0, 0, 0] == pytest.approx((100 + 250 + 120) / 3 / 255, abs=1e-3)
+    assert rgb_ground[0, 0].tolist() == pytest.approx([110 / 255] * 3, abs=1e-3)

@@ -77,6 +77,18 @@ def march_pool(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist:
     return [batch_hits(pool, sl, rows, vid, w) for sl, rows, vid, w in pool_hits(surface, pool, T, max_dist, batch)]
 
 
+def ground_hits(hits: list[Hits], ground: torch.Tensor | None) -> list[Hits]:
+    """The ``hits`` of pixels that may colour the surface: ``ground`` (C,) bool per semantic channel, and the
+    unlabelled pixels (channel -1); all of them when ``ground`` is None."""
+    if ground is None:
+        return hits
+    out = []
+    for h in hits:
+        k = (h.channel < 0) | ground.to(h.channel.device)[h.channel.clamp_min(0)]
+        out.append(Hits(h.vid[k], h.w[k], h.c8[k], h.view[k], h.channel[k], None if h.rows is None else h.rows[k]))
+    return out
+
+
 def _mean_colours(hits: list[Hits], n: int, exposure: torch.Tensor | None, device: torch.device
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """(n, 3) float64 weighted-mean colours of the compensated pixels and (n,) their summed weights."""
@@ -120,16 +132,17 @@ def _fit_exposure(hits: list[Hits], rgb: torch.Tensor, n_views: int) -> torch.Te
 @torch.no_grad()
 def bake_exposed(surface: HeightField, pool: PixelPool, T: torch.Tensor, max_dist: float, fill_sigma: float = 1.0,
                  batch: int = 262144, sharpen_iters: int = 0, exposure_rounds: int = 0,
-                 hits: list[Hits] | None = None
+                 hits: list[Hits] | None = None, ground: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """:func:`bake_colours` with the views' exposures (:mod:`pavemap.mesh.exposure`) fitted alongside:
     ``exposure_rounds`` alternations of baking the compensated colours and fitting each view's gain and
     offset to the texture. Returns rgb, support, coloured as :func:`bake_colours` and the exposure (V, 2)
     float64 of the pool's views (None with 0 rounds). One march over the pixels, cached; ``hits``: that
-    march already made (:func:`march_pool` of this surface, pool and T), not repeated."""
+    march already made (:func:`march_pool` of this surface, pool and T), not repeated. ``ground``: (C,) bool
+    per semantic channel, the classes whose pixels colour it (:func:`ground_hits`; None: every pixel)."""
     heights = surface.heights
     ny, nx = heights.shape
-    hits = march_pool(surface, pool, T, max_dist, batch) if hits is None else hits
+    hits = ground_hits(march_pool(surface, pool, T, max_dist, batch) if hits is None else hits, ground)
     exposure = None
     rgb, support = _mean_colours(hits, ny * nx, exposure, heights.device)
     for _ in range(exposure_rounds if hits else 0):  # no pixel on the surface: nothing to fit
@@ -243,18 +256,20 @@ def _opened(flag: torch.Tensor, pool: PixelPool, radius: int) -> torch.Tensor:
 @torch.no_grad()
 def bake_into(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, fill: float, max_dist: float,
               fill_sigma: float = 1.0, sharpen_iters: int = 0, exposure_rounds: int = 0,
-              hits: list[Hits] | None = None, semantics: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+              hits: list[Hits] | None = None, semantics: bool = False, ground: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Replace the model's vertex colours by the baked ones on its current surface (where any pixel reaches
     them, directly or through the gap fill), seen from poses T (V, 4, 4); ``fill`` is the height off the crop.
     Returns (Nv,) bool: the vertices some training pixel sees, and the views' exposure (V, 2) or None
     (``exposure_rounds``: :func:`bake_exposed`). ``hits``: the march of ``pool`` from T on the current surface
     when one was made already (:func:`pavemap.mesh.setup.visible_pixels`). ``semantics``: the vertices' semantic
-    logits are baked too (:func:`bake_semantics`) where a labelled pixel reaches them."""
+    logits are baked too (:func:`bake_semantics`) where a labelled pixel reaches them. ``ground``: the semantic
+    channels whose pixels colour the surface (:func:`ground_hits`; the semantics take every pixel)."""
     field = model.field(model.dense_heights(fill))
     if hits is None:
         hits = march_pool(field, pool, T, max_dist)
     rgb, support, coloured, exposure = bake_exposed(field, pool, T, max_dist, fill_sigma, sharpen_iters=sharpen_iters,
-                                                    exposure_rounds=exposure_rounds, hits=hits)
+                                                    exposure_rounds=exposure_rounds, hits=hits, ground=ground)
     flat = model.vertex_flat_ids
     ok = coloured.reshape(-1)[flat]
     model.rgb.data[ok] = rgb.reshape(-1, 3)[flat][ok].to(model.rgb.dtype)

@@ -173,6 +173,10 @@ class MeshConfig:
     # real cameras change exposure along a drive; held-out views take their neighbours' (0: off).
     exposure_rounds: int = 2
     bake_fill_sigma: float = 1.0  # cells: vertices no training pixel hits take their neighbours' colour
+    # Only pixels of ground classes (SemanticClass.ground: road, markings, kerb, sidewalk, terrain) and unlabelled
+    # ones colour the texture: a wall, a trailer or a bus the segmenter calls "building", cast along its rays,
+    # would paint its side onto the road behind it. The semantic bake keeps every labelled pixel.
+    bake_ground_only: bool = True
     height_refresh_steps: int = 16  # steps between full-grid height re-evaluations used by the march
     resume: bool = True  # continue from DIR/checkpoint.pt when it matches
     # Long drives (pavemap.mesh.segments): a path longer than 1.5 x ``segment_m`` is cut into segments of about

@@ -122,10 +122,10 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
         _drop_moving(fit, run)
     if cfg.bake_init and run.done.epoch == 0:
         bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits,
-                  semantics=fit.use_sem)
+                  semantics=fit.use_sem, ground=_ground(fit, run))
         if _kerb_refit(fit, run) and cfg.epochs > 0:
             bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
-                      semantics=fit.use_sem)
+                      semantics=fit.use_sem, ground=_ground(fit, run))
     run.init_hits = None  # freed before training
     if cfg.refine and run.done.epoch == 0:
         from pavemap.mesh.refine_run import refine_offset
@@ -211,6 +211,15 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     return mesh, metrics
 
 
+def _ground(fit: Fit, run: _Run) -> torch.Tensor | None:
+    """(C,) bool: the semantic channels whose pixels colour the texture (``mesh.bake_ground_only``), or None."""
+    classes = run.data.classes
+    if not fit.cfg.bake_ground_only or not classes:
+        return None
+    g = torch.tensor([c.ground for c in classes], dtype=torch.bool)
+    return None if bool(g.all()) else g
+
+
 def _final_bake(fit: Fit, run: _Run) -> tuple[torch.Tensor | None, RoadMesh, dict]:
     """The final bake (``seen`` (Nv,) bool or None without it), the mesh, and the texture check's metrics
     (:mod:`pavemap.mesh.texture_check`; ``{"texture_check": ...}`` or empty) on one march of the pixels, freed
@@ -224,7 +233,7 @@ def _final_bake(fit: Fit, run: _Run) -> tuple[torch.Tensor | None, RoadMesh, dic
             hits = march_pool(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), cfg.max_dist)
         seen, run.exposure = bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist,
                                        cfg.bake_fill_sigma, sharpen_iters=cfg.bake_sharpen_iters,
-                                       exposure_rounds=cfg.exposure_rounds, hits=hits)
+                                       exposure_rounds=cfg.exposure_rounds, hits=hits, ground=_ground(fit, run))
     mesh = to_road_mesh(fit.model, data.class_ids, data.use_sem)
     if check:
         from pavemap.mesh.texture_check import check_model_texture
