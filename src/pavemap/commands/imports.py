@@ -225,8 +225,8 @@ def folder_cmd(
     refine_intrinsics: bool = typer.Option(
         False, "--refine-intrinsics", help="SfM refines nominal focal length and principal point."),
     fps: float | None = typer.Option(
-        None, "--fps", help="Frames per second of the images (e.g. 2 for nuScenes keyframes): frame times, and "
-        "SfM's path checked against a car's speed changes."),
+        None, "--fps", help="Frames per second of the images (e.g. 2 for nuScenes keyframes): frame times; with "
+        "SfM a speed change no car makes is warned about (nominal times, so not refused)."),
 ) -> None:
     """Own drive: images + cameras.json + poses.csv (or --poses sfm) → sequence folder.
 
