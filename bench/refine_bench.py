@@ -7,10 +7,11 @@ true surface shifted by -10, -5, +5, +10 cm and the bias after the refinement. W
 ``bench/results/refine.json`` with the commit, date and load.
 
 ``--real``: instead, the real samples as a user runs them (``pavemap import``, then ``pavemap reconstruct``
-with its defaults and the self-check ``mesh.consistency_check=true``, with and without ``mesh.refine=true``): the KITTI sample
-(51 grey frames, true poses, corridor semantics) and both nuScenes clips (``import folder --poses sfm --fps 2``,
-the segmenter's semantics). No truth surface there: the refinement's offset, the check's reading, the camera
-height stage 1 used and found, the held-out PSNR over the textured road and the seconds (key ``real``).
+with its defaults and the self-check ``mesh.consistency_check=true``, with and without ``mesh.refine=true``):
+the KITTI sample (51 grey frames, true poses, corridor semantics) and both nuScenes clips (``import folder
+--poses sfm --fps 2``, the segmenter's semantics). No truth surface there: the refinement's offset, the
+check's reading, the camera height stage 1 used and found, the held-out PSNR over the textured road and the
+seconds (key ``real``).
 
     python bench/refine_bench.py [--data DIR] [--presets kitti-like,nuscenes-like] [--real]
 """

@@ -104,7 +104,7 @@ def detect_sequence(
     seq: Sequence,
     weights: str | os.PathLike,
     out: str | os.PathLike,
-    imgsz: int = 640,
+    imgsz: int = 800,
     conf: float = 0.05,
     device: str = "auto",
     batch: int = 8,
