@@ -24,11 +24,11 @@ from tqdm.auto import tqdm
 
 from pavemap.device import resolve_device
 from pavemap.errors import PavemapError
-from pavemap.geometry import surface_bounds
 from pavemap.mesh.bake import bake_into, march_pool
 from pavemap.mesh.checkpoint import CHECKPOINT, Resumed, resume, save_checkpoint
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool
+from pavemap.mesh.epoch import Loop, posed, run_epoch
 from pavemap.mesh.evaluate import evaluate_pool, psnr, stage_metrics
 from pavemap.mesh.geometry import (
     Geometry,
@@ -43,7 +43,7 @@ from pavemap.mesh.init_surface import initial_heights
 from pavemap.mesh.model import RoadMesh, RoadMeshModel, to_road_mesh
 from pavemap.mesh.pose import PoseCorrections, align_poses, corrected_poses, rig_corrections, rig_groups
 from pavemap.mesh.setup import TrainData, Warn, prepare, visible_pixels
-from pavemap.mesh.step import Fit, NonFiniteStepError, make_optimizer, train_step
+from pavemap.mesh.step import Fit, make_optimizer
 from pavemap.types import Sequence
 
 LOSS_KEYS = ("loss", "rgb", "sem", "depth", "smooth")
@@ -121,16 +121,16 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     if cfg.moving_cutoff > 0:
         _drop_moving(fit, run)
     if cfg.bake_init and run.done.epoch == 0:
-        bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits,
+        bake_into(fit.model, fit.pool, posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma, hits=run.init_hits,
                   semantics=fit.use_sem, ground=_ground(fit, run))
         if _kerb_refit(fit, run) and cfg.epochs > 0:
-            bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
+            bake_into(fit.model, fit.pool, posed(fit), run.fill, cfg.max_dist, cfg.bake_fill_sigma,
                       semantics=fit.use_sem, ground=_ground(fit, run))
     run.init_hits = None  # freed before training
     if cfg.refine and run.done.epoch == 0:
         from pavemap.mesh.refine_run import refine_offset
 
-        run.refined = refine_offset(fit.model, fit.pool, _posed(fit), cfg)
+        run.refined = refine_offset(fit.model, fit.pool, posed(fit), cfg)
     run.relief_state = None
     history, schedule = _train(fit, run, out_dir, progress)
     mesh, metrics = _finish(fit, run, seq, history, schedule)
@@ -170,7 +170,7 @@ def _drop_moving(fit: Fit, run: _Run) -> None:
     from pavemap.mesh.bake import static_pixels
 
     m = fit.model
-    keep = static_pixels(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), fit.cfg.max_dist,
+    keep = static_pixels(m.field(m.dense_heights(run.fill)), fit.pool, posed(fit), fit.cfg.max_dist,
                          fit.cfg.moving_cutoff, fill_sigma=fit.cfg.bake_fill_sigma, blob_px=fit.cfg.moving_blob_px)
     dropped = int((~keep).sum())
     run.moving_share = dropped / max(1, len(fit.pool))
@@ -201,7 +201,7 @@ def _finish(fit: Fit, run: _Run, seq: Sequence, history: list[dict], schedule: d
     if cfg.refine or cfg.consistency_check:
         from pavemap.mesh.refine_run import record
 
-        record(fit.model, fit.pool, _posed(fit), cfg, run.refined, run.warn, metrics)
+        record(fit.model, fit.pool, posed(fit), cfg, run.refined, run.warn, metrics)
     metrics.update(history=history, warnings=run.notes, config=cfg.to_dict())
     if fit.poses is not None:
         metrics["pose_alignment"] = run.align_log
@@ -230,8 +230,8 @@ def _final_bake(fit: Fit, run: _Run) -> tuple[torch.Tensor | None, RoadMesh, dic
     if cfg.bake_final:
         if check and run.all_pixels is None:  # the check compares the pixels the bake used: one march for both
             m = fit.model
-            hits = march_pool(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), cfg.max_dist)
-        seen, run.exposure = bake_into(fit.model, fit.pool, _posed(fit), run.fill, cfg.max_dist,
+            hits = march_pool(m.field(m.dense_heights(run.fill)), fit.pool, posed(fit), cfg.max_dist)
+        seen, run.exposure = bake_into(fit.model, fit.pool, posed(fit), run.fill, cfg.max_dist,
                                        cfg.bake_fill_sigma, sharpen_iters=cfg.bake_sharpen_iters,
                                        exposure_rounds=cfg.exposure_rounds, hits=hits, ground=_ground(fit, run))
     mesh = to_road_mesh(fit.model, data.class_ids, data.use_sem)
@@ -240,7 +240,7 @@ def _final_bake(fit: Fit, run: _Run) -> tuple[torch.Tensor | None, RoadMesh, dic
 
         pixels = fit.pool if run.all_pixels is None else run.all_pixels  # those _drop_moving left out too
         mesh.contested, texture["texture_check"] = check_model_texture(
-            fit.model, mesh, data.classes, pixels, _posed(fit), run.fill, cfg, run.exposure, run.warn, hits)
+            fit.model, mesh, data.classes, pixels, posed(fit), run.fill, cfg, run.exposure, run.warn, hits)
     return seen, mesh, texture
 
 
@@ -270,7 +270,7 @@ def _observed(fit: Fit, run: _Run, seen: torch.Tensor | None) -> torch.Tensor:
     if seen is None:
         from pavemap.mesh.bake import bake_colours
 
-        _, support, _ = bake_colours(m.field(m.dense_heights(run.fill)), fit.pool, _posed(fit), fit.cfg.max_dist,
+        _, support, _ = bake_colours(m.field(m.dense_heights(run.fill)), fit.pool, posed(fit), fit.cfg.max_dist,
                                      fit.cfg.bake_fill_sigma)
         seen = support.reshape(-1)[m.vertex_flat_ids] > 0
     pix = m.dense(seen.to(torch.bool), fill=False).cpu().numpy()
@@ -324,11 +324,6 @@ def _resume(fit: Fit, run: _Run, out_dir: Path, warn: Warn) -> None:
         fit.poses.set(delta)
 
 
-def _posed(fit: Fit) -> torch.Tensor:
-    """(V, 4, 4) training poses with the current corrections."""
-    return corrected_poses(fit.pool.T, None if fit.poses is None else fit.poses.view_delta())
-
-
 def _eval_delta(fit: Fit, data: TrainData) -> torch.Tensor | None:
     """Pose corrections of the evaluation views: the training views' own, or interpolated for held-out frames."""
     from pavemap.mesh.pose import interpolate_corrections
@@ -365,17 +360,6 @@ def _align_stage(fit: Fit, run: _Run) -> tuple[torch.Tensor, list[dict]]:
     return delta, log
 
 
-@dataclass
-class _Loop:
-    """The step schedule of a run and its progress bar; ``bad`` counts consecutive non-finite steps."""
-
-    n_epoch: int  # pixels visited per epoch
-    steps: int  # steps per epoch
-    total: int  # steps of the whole run
-    bar: tqdm
-    bad: int = 0
-
-
 def _train(fit: Fit, run: _Run, out_dir: Path | None, progress: bool) -> tuple[list[dict], dict[str, int]]:
     """The epochs from where the run resumes: steps, per-epoch evaluation and history, checkpoints.
     Returns the history and the schedule (``steps_per_epoch``, ``pixels_per_epoch``)."""
@@ -384,11 +368,11 @@ def _train(fit: Fit, run: _Run, out_dir: Path | None, progress: bool) -> tuple[l
     steps = max(1, math.ceil(n_epoch / cfg.pixels_per_step))
     todo = (cfg.epochs - run.done.epoch) * steps
     bar = tqdm(total=todo, disable=not progress or todo <= 0, desc="mesh", unit="step", dynamic_ncols=True)
-    loop = _Loop(n_epoch, steps, max(1, cfg.epochs * steps), bar)
+    loop = Loop(n_epoch, steps, max(1, cfg.epochs * steps), bar)
     history = run.done.history
     for epoch in range(run.done.epoch, cfg.epochs):
         t_ep = time.perf_counter()
-        sums = _epoch(fit, loop, epoch, run.gen, run.fill)
+        sums = run_epoch(fit, loop, epoch, run.gen, run.fill)
         ev = evaluate_pool(model, run.data.epool, model.dense_heights(run.fill), cfg.max_dist,
                            delta=_eval_delta(fit, run.data), max_pixels=100000,
                            generator=torch.Generator().manual_seed(cfg.seed + 2))
@@ -405,48 +389,3 @@ def _train(fit: Fit, run: _Run, out_dir: Path | None, progress: bool) -> tuple[l
                             run.done.seconds + time.perf_counter() - run.t_start)
     bar.close()
     return history, {"steps_per_epoch": steps, "pixels_per_epoch": n_epoch}
-
-
-def _epoch(fit: Fit, loop: _Loop, epoch: int, gen: torch.Generator, fill: float) -> dict[str, float]:
-    """One pass over a random ``loop.n_epoch`` of the training pixels; the summed step losses."""
-    cfg, model = fit.cfg, fit.model
-    perm = torch.randperm(len(fit.pool), generator=gen)[:loop.n_epoch].to(fit.pool.view.device)
-    sums: dict[str, float] = {"loss": 0.0, "rgb": 0.0, "sem": 0.0, "depth": 0.0, "smooth": 0.0, "se": 0.0, "n": 0}
-    cache = bounds = None
-    for step in range(loop.steps):
-        if cache is None or step % cfg.height_refresh_steps == 0:
-            cache = model.dense_heights(fill).reshape(-1)
-            bounds = surface_bounds(model.field(cache), torch.float32)
-        gstep = epoch * loop.steps + step
-        if fit.poses is not None and _rebake_due(gstep, loop.total, cfg):
-            # Poses align to the consensus texture of all views: re-baked on the current poses, it is the
-            # multi-view average, whereas Adam's per-vertex colours fit single pixels and leave a wide pose loss.
-            bake_into(model, fit.pool, _posed(fit), fill, cfg.max_dist, cfg.bake_fill_sigma)
-        b = perm[step * cfg.pixels_per_step:(step + 1) * cfg.pixels_per_step]
-        if b.numel() == 0:
-            continue
-        try:
-            out = train_step(fit, b, cache, bounds, gstep / loop.total)
-        except NonFiniteStepError as e:  # skip the step; give up only when it keeps happening
-            loop.bad += 1
-            if loop.bad >= cfg.max_bad_steps:
-                raise PavemapError(f"training diverged: {loop.bad} consecutive non-finite {e.what} "
-                                   f"(epoch {epoch + 1})") from None
-            loop.bar.update(1)
-            continue
-        loop.bar.update(1)
-        if out is None:
-            continue
-        loop.bad = 0
-        for k in sums:
-            sums[k] += out[k]
-        if step % 4 == 0:
-            loop.bar.set_postfix(epoch=f"{epoch + 1}/{cfg.epochs}", loss=f"{out['loss']:.4f}",
-                                 psnr=f"{psnr(sums['se'] / max(1, sums['n'])):.2f}")
-    return sums
-
-
-def _rebake_due(gstep: int, total: int, cfg: MeshConfig) -> bool:
-    """With pose refinement: whether step ``gstep`` re-bakes the colours (every ``pose_bake_every`` steps
-    once the poses move)."""
-    return gstep >= cfg.pose_warmup * total and (gstep - math.ceil(cfg.pose_warmup * total)) % cfg.pose_bake_every == 0
