@@ -6,7 +6,14 @@ seconds, the consistency self-check's offset, for the closed form and the closed
 true surface shifted by -10, -5, +5, +10 cm and the bias after the refinement. Writes
 ``bench/results/refine.json`` with the commit, date and load.
 
-    python bench/refine_bench.py [--data DIR] [--presets kitti-like,nuscenes-like]
+``--parts`` picks what to measure (the others keep their figures from the file, each part with its own
+commit and date): ``synthetic`` (the above), ``f1`` (whole ``pavemap run`` on the presets' drives with and
+without the refinement: defect F1, precision, recall, stage-1 seconds), ``real`` (the real KITTI sample and the
+two nuScenes clips, imported once into ``--data``/real: the refinement's offset, the consistency check,
+the camera height above the surface, held-out PSNR, seconds; see :mod:`refine_real`).
+
+    python bench/refine_bench.py [--data DIR] [--presets kitti-like,nuscenes-like] [--parts synthetic,f1,real]
+                                 [--real-data DIR]
 """
 
 from __future__ import annotations
@@ -92,29 +99,77 @@ def relief(seq_dir: Path, preset: str) -> dict:
     return {"before": err(zc), "after": err(z), "seconds": round(secs, 1), "levels": log}
 
 
+def f1_runs(seq_dir: Path, preset: str, work: Path) -> dict:
+    """Whole ``pavemap run`` (the preset's config, CPU, simulated detector) on the drive, without and with
+    ``mesh.refine``: defect F1, precision, recall against the truth and the seconds per stage."""
+    import shutil
+    import tempfile
+
+    import pavemap
+
+    out = {}
+    for refine in (False, True):
+        cfg = pavemap.load_config({"kitti-like": "kitti", "nuscenes-like": "nuscenes"}[preset])
+        cfg.device, cfg.mesh.refine, cfg.mesh.consistency_check = "cpu", refine, refine
+        run_dir = Path(tempfile.mkdtemp(prefix=f"refine-f1-{preset}-", dir=work))
+        try:
+            res = pavemap.run(seq_dir, cfg, run_dir / "run", progress=False)
+            ev, m = res.evaluation or {}, res.metrics
+            out["refined" if refine else "closed_form"] = {
+                "f1": ev.get("f1"), "precision": ev.get("precision"), "recall": ev.get("recall"),
+                "matched": ev.get("matched"), "truth": ev.get("truth"), "stage_seconds": m.get("seconds"),
+                "refine": m.get("mesh", {}).get("refine"), "consistency": m.get("mesh", {}).get("consistency")}
+        finally:
+            shutil.rmtree(run_dir)
+        print(preset, "refine" if refine else "closed form", json.dumps(out["refined" if refine else "closed_form"]),
+              flush=True)
+    return out
+
+
+def synthetic(seq_dir: Path, preset: str) -> dict:
+    """The closed form and the refinement on the drive, surfaces shifted by OFFSETS, the Gauss-Newton relief."""
+    entry = {"closed_form": run(seq_dir, preset, False)}
+    print(preset, json.dumps(entry["closed_form"]), flush=True)
+    entry["refined"] = run(seq_dir, preset, True)
+    # the load of a shared machine moves whole runs by 2-4x: the refinement's own seconds against the closed form's
+    closed = entry["closed_form"]["seconds_without_check"]
+    entry["time_ratio_refine"] = round((closed + entry["refined"]["refine"]["seconds"]) / max(closed, 1e-9), 2)
+    print(preset, json.dumps(entry["refined"]), flush=True)
+    entry["shifted"] = shifted(seq_dir, preset)
+    entry["relief_gauss_newton"] = relief(seq_dir, preset)
+    print(preset, json.dumps(entry["relief_gauss_newton"]), flush=True)
+    return entry
+
+
 def main() -> None:
     ap = bench_parser(__doc__, "kitti-like,nuscenes-like", RESULTS)
+    ap.add_argument("--parts", default="synthetic", help="comma-separated: synthetic, f1, real")
+    ap.add_argument("--real-data", type=Path, default=ROOT.parent / "shared" / "data",
+                    help="folder of kitti-odometry-sample/, nuscenes-front-clip/, nuscenes-front-clip-2/")
     a = ap.parse_args()
+    parts = set(a.parts.split(","))
+    if parts - {"synthetic", "f1", "real"}:
+        raise SystemExit(f"--parts: unknown {sorted(parts - {'synthetic', 'f1', 'real'})}")
     torch.set_num_threads(1)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
-    old = json.loads(a.results.read_text()) if a.results.is_file() else {}
-    results = {"targets": TARGETS, **machine_entry(), "commit": commit, "presets": {},
-               **({"diagnosis": old["diagnosis"]} if "diagnosis" in old else {})}  # bench/refine_diag.py's
-    for preset in a.presets.split(","):
+    stamp = {**machine_entry(), "commit": commit}
+    results = json.loads(a.results.read_text()) if a.results.is_file() else {}
+    results["targets"] = TARGETS
+    if "real" in parts:
+        from refine_real import real_samples
+
+        results["real"] = {**stamp, "samples": real_samples(a.real_data, a.data / "real")}
+        results["real"]["load_avg"] = os.getloadavg()
+        write_results(a.results, results)
+    for preset in a.presets.split(",") if parts & {"synthetic", "f1"} else ():
         seq_dir = bench_drive(a.data, preset, "none", "cpu")
-        entry = {"closed_form": run(seq_dir, preset, False)}
-        print(preset, json.dumps(entry["closed_form"]), flush=True)
-        entry["refined"] = run(seq_dir, preset, True)
-        # the load of a shared machine moves whole runs by 2-4x: the refinement's own seconds against the closed form's
-        closed = entry["closed_form"]["seconds_without_check"]
-        entry["time_ratio_refine"] = round((closed + entry["refined"]["refine"]["seconds"]) / max(closed, 1e-9), 2)
-        print(preset, json.dumps(entry["refined"]), flush=True)
-        entry["shifted"] = shifted(seq_dir, preset)
-        entry["relief_gauss_newton"] = relief(seq_dir, preset)
-        print(preset, json.dumps(entry["relief_gauss_newton"]), flush=True)
-        entry["load_avg"] = os.getloadavg()
-        results["presets"][preset] = entry
+        if "synthetic" in parts:
+            results.update(stamp)  # the top-level commit and date are the synthetic part's
+            results.setdefault("presets", {})[preset] = {**synthetic(seq_dir, preset), "load_avg": os.getloadavg()}
+        if "f1" in parts:
+            results.setdefault("f1", {})[preset] = {**stamp, **f1_runs(seq_dir, preset, a.data),
+                                                    "load_avg": os.getloadavg()}
         write_results(a.results, results)
 
 
