@@ -59,7 +59,7 @@ def imported(data: Path, work: Path, name: str) -> Path:
 
 def one_run(seq: Path, out: Path, refine: bool) -> dict:
     """``pavemap run`` on ``seq`` into ``out`` (replaced), with or without the refinement: what it measured."""
-    args = ["run", str(seq), "--out", str(out), "--overwrite", "--no-progress"]
+    args = ["run", str(seq), "--out", str(out), "--overwrite"]
     secs = _pavemap(args + (["--set", *REFINE] if refine else []), out.parent / f"{out.name}.log")
     m = json.loads((out / "metrics.json").read_text())
     mesh = m.get("mesh", {})
