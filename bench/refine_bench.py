@@ -6,21 +6,20 @@ seconds, the consistency self-check's offset, for the closed form and the closed
 true surface shifted by -10, -5, +5, +10 cm and the bias after the refinement. Writes
 ``bench/results/refine.json`` with the commit, date and load.
 
-``--real``: instead, the real samples as a user runs them (``pavemap import``, then ``pavemap reconstruct``
-with its defaults and the self-check ``mesh.consistency_check=true``, with and without ``mesh.refine=true``):
-the KITTI sample (51 grey frames, true poses, corridor semantics) and both nuScenes clips (``import folder
---poses sfm --fps 2``, the segmenter's semantics). No truth surface there: the refinement's offset, the
-check's reading, the camera height stage 1 used and found, the held-out PSNR over the textured road and the
-seconds (key ``real``).
+``--parts`` picks what to measure (the others keep their figures from the file, each part with its own
+commit and date): ``synthetic`` (the above), ``f1`` (whole ``pavemap run`` on the presets' drives with and
+without the refinement: defect F1, precision, recall, stage-1 seconds), ``real`` (the real KITTI sample and the
+two nuScenes clips, imported once into ``--data``/real: the refinement's offset, the consistency check,
+the camera height above the surface, held-out PSNR, seconds; see :mod:`refine_real`).
 
-    python bench/refine_bench.py [--data DIR] [--presets kitti-like,nuscenes-like] [--real]
+    python bench/refine_bench.py [--data DIR] [--presets kitti-like,nuscenes-like] [--parts synthetic,f1,real]
+                                 [--real-data DIR]
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -100,111 +99,77 @@ def relief(seq_dir: Path, preset: str) -> dict:
     return {"before": err(zc), "after": err(z), "seconds": round(secs, 1), "levels": log}
 
 
-SHARED = ROOT.parent / "shared" / "data"
-REAL_IMPORTS = {
-    "kitti-sample": ["import", "kitti", str(SHARED / "kitti-odometry-sample"), "--sequence", "90", "--camera", "0",
-                     "--no-lidar"],
-    "nuscenes-clip-1": ["import", "folder", str(SHARED / "nuscenes-front-clip" / "images"), "--cameras",
-                        str(SHARED / "nuscenes-front-clip" / "cameras.json"), "--poses", "sfm", "--fps", "2"],
-    "nuscenes-clip-2": ["import", "folder", str(SHARED / "nuscenes-front-clip-2" / "images"), "--cameras",
-                        str(SHARED / "nuscenes-front-clip-2" / "cameras.json"), "--poses", "sfm", "--fps", "2"],
-}
+def f1_runs(seq_dir: Path, preset: str, work: Path) -> dict:
+    """Whole ``pavemap run`` (the preset's config, CPU, simulated detector) on the drive, without and with
+    ``mesh.refine``: defect F1, precision, recall against the truth and the seconds per stage."""
+    import shutil
+    import tempfile
 
-
-def f1(seq_dir: Path, preset: str) -> dict:
-    """Defect F1 of ``pavemap.run`` on the bench drive (simulated detections, ``detector.backend=file``), closed
-    form against closed form + refinement: the refinement must not cost defects."""
     import pavemap
-    from pavemap.config import load_config
-    from pavemap.synth import detect_sequence
 
-    seq = read_sequence(seq_dir)
-    if not (seq_dir / "detections.jsonl").is_file():
-        detect_sequence(seq, seed=0, progress=False)
     out = {}
-    for label, refine in (("closed_form", False), ("refined", True)):
-        cfg = load_config(SETTINGS[preset]["mesh_preset"])
-        cfg.device, cfg.detector.backend = "cpu", "file"
-        cfg.mesh.render_scale, cfg.mesh.refine = SETTINGS[preset]["render_scale"], refine
-        cfg.output.figures = cfg.output.report = False
-        t = time.perf_counter()
-        r = pavemap.run(read_sequence(seq_dir), cfg, seq_dir.parent / f"refine-f1-{preset}-{label}", overwrite=True,
-                        progress=False)
-        e = r.evaluation or {}
-        out[label] = {"f1": e.get("f1"), "precision": e.get("precision"), "recall": e.get("recall"),
-                      "defects": len(r.defects), "seconds": round(time.perf_counter() - t, 1)}
-        print(preset, label, json.dumps(out[label]), flush=True)
+    for refine in (False, True):
+        cfg = pavemap.load_config({"kitti-like": "kitti", "nuscenes-like": "nuscenes"}[preset])
+        cfg.device, cfg.mesh.refine, cfg.mesh.consistency_check = "cpu", refine, refine
+        run_dir = Path(tempfile.mkdtemp(prefix=f"refine-f1-{preset}-", dir=work))
+        try:
+            res = pavemap.run(seq_dir, cfg, run_dir / "run", progress=False)
+            ev, m = res.evaluation or {}, res.metrics
+            out["refined" if refine else "closed_form"] = {
+                "f1": ev.get("f1"), "precision": ev.get("precision"), "recall": ev.get("recall"),
+                "matched": ev.get("matched"), "truth": ev.get("truth"), "stage_seconds": m.get("seconds"),
+                "refine": m.get("mesh", {}).get("refine"), "consistency": m.get("mesh", {}).get("consistency")}
+        finally:
+            shutil.rmtree(run_dir)
+        print(preset, "refine" if refine else "closed form", json.dumps(out["refined" if refine else "closed_form"]),
+              flush=True)
     return out
 
 
-def real(data: Path) -> dict:
-    """Each real sample imported once (kept under ``data``), reconstructed with and without the refinement."""
-    cli = [sys.executable, "-c", "import sys; from pavemap.cli import main; sys.exit(main())"]
-    out: dict = {}
-    for name, args in REAL_IMPORTS.items():
-        seq = data / f"real-{name}"
-        if not (seq / "sequence.json").is_file():
-            subprocess.run(cli + args + ["--out", str(seq), "--overwrite"], check=True, capture_output=True)
-        rows = {}
-        for label, sets in (("closed_form", ["mesh.consistency_check=true"]),
-                            ("refined", ["mesh.refine=true", "mesh.consistency_check=true"])):
-            mesh = data / f"real-{name}-{label}"
-            shutil.rmtree(mesh, ignore_errors=True)  # the bench's own output of an earlier run
-            t = time.perf_counter()
-            subprocess.run(cli + ["reconstruct", str(seq), "--out", str(mesh)]
-                           + [x for s in sets for x in ("--set", s)], check=True, capture_output=True)
-            m = json.loads((mesh / "metrics.json").read_text())
-            cam = (m.get("geometry") or {}).get("camera_height") or {}
-            rows[label] = {"seconds": round(time.perf_counter() - t, 1), "psnr_db": m.get("psnr"),
-                           "heldout_textured_share": m.get("heldout_textured_share"),
-                           "camera_height_used_m": cam.get("used_m"), "camera_height_found_m": cam.get("found_m"),
-                           "camera_height_prior_m": cam.get("prior_m"), "refine": m.get("refine"),
-                           "consistency": m.get("consistency")}
-            print(name, label, json.dumps(rows[label]), flush=True)
-        out[name] = {**rows, "load_avg": os.getloadavg()}
-    return out
+def synthetic(seq_dir: Path, preset: str) -> dict:
+    """The closed form and the refinement on the drive, surfaces shifted by OFFSETS, the Gauss-Newton relief."""
+    entry = {"closed_form": run(seq_dir, preset, False)}
+    print(preset, json.dumps(entry["closed_form"]), flush=True)
+    entry["refined"] = run(seq_dir, preset, True)
+    # the load of a shared machine moves whole runs by 2-4x: the refinement's own seconds against the closed form's
+    closed = entry["closed_form"]["seconds_without_check"]
+    entry["time_ratio_refine"] = round((closed + entry["refined"]["refine"]["seconds"]) / max(closed, 1e-9), 2)
+    print(preset, json.dumps(entry["refined"]), flush=True)
+    entry["shifted"] = shifted(seq_dir, preset)
+    entry["relief_gauss_newton"] = relief(seq_dir, preset)
+    print(preset, json.dumps(entry["relief_gauss_newton"]), flush=True)
+    return entry
 
 
 def main() -> None:
     ap = bench_parser(__doc__, "kitti-like,nuscenes-like", RESULTS)
-    ap.add_argument("--real", action="store_true", help="the real samples only (key 'real')")
-    ap.add_argument("--f1", action="store_true", help="defect F1 with and without the refinement only (key 'f1')")
+    ap.add_argument("--parts", default="synthetic", help="comma-separated: synthetic, f1, real")
+    ap.add_argument("--real-data", type=Path, default=ROOT.parent / "shared" / "data",
+                    help="folder of kitti-odometry-sample/, nuscenes-front-clip/, nuscenes-front-clip-2/")
     a = ap.parse_args()
-    if a.f1:
-        results = json.loads(a.results.read_text()) if a.results.is_file() else {}
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                                text=True).stdout.strip()
-        results["f1"] = {**machine_entry(), "commit": commit,
-                         **{p: f1(bench_drive(a.data, p, "none", "cpu"), p) for p in a.presets.split(",")}}
-        write_results(a.results, results)
-        return
-    if a.real:
-        results = json.loads(a.results.read_text()) if a.results.is_file() else {}
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                                text=True).stdout.strip()
-        results["real"] = {**machine_entry(), "commit": commit, "samples": real(a.data)}
-        write_results(a.results, results)
-        return
+    parts = set(a.parts.split(","))
+    if parts - {"synthetic", "f1", "real"}:
+        raise SystemExit(f"--parts: unknown {sorted(parts - {'synthetic', 'f1', 'real'})}")
     torch.set_num_threads(1)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
-    old = json.loads(a.results.read_text()) if a.results.is_file() else {}
-    results = {"targets": TARGETS, **machine_entry(), "commit": commit, "presets": {},
-               **({"diagnosis": old["diagnosis"]} if "diagnosis" in old else {})}  # bench/refine_diag.py's
-    for preset in a.presets.split(","):
+    stamp = {**machine_entry(), "commit": commit}
+    results = json.loads(a.results.read_text()) if a.results.is_file() else {}
+    results["targets"] = TARGETS
+    if "real" in parts:
+        from refine_real import real_samples
+
+        results["real"] = {**stamp, "samples": real_samples(a.real_data, a.data / "real")}
+        results["real"]["load_avg"] = os.getloadavg()
+        write_results(a.results, results)
+    for preset in a.presets.split(",") if parts & {"synthetic", "f1"} else ():
         seq_dir = bench_drive(a.data, preset, "none", "cpu")
-        entry = {"closed_form": run(seq_dir, preset, False)}
-        print(preset, json.dumps(entry["closed_form"]), flush=True)
-        entry["refined"] = run(seq_dir, preset, True)
-        # the load of a shared machine moves whole runs by 2-4x: the refinement's own seconds against the closed form's
-        closed = entry["closed_form"]["seconds_without_check"]
-        entry["time_ratio_refine"] = round((closed + entry["refined"]["refine"]["seconds"]) / max(closed, 1e-9), 2)
-        print(preset, json.dumps(entry["refined"]), flush=True)
-        entry["shifted"] = shifted(seq_dir, preset)
-        entry["relief_gauss_newton"] = relief(seq_dir, preset)
-        print(preset, json.dumps(entry["relief_gauss_newton"]), flush=True)
-        entry["load_avg"] = os.getloadavg()
-        results["presets"][preset] = entry
+        if "synthetic" in parts:
+            results.update(stamp)  # the top-level commit and date are the synthetic part's
+            results.setdefault("presets", {})[preset] = {**synthetic(seq_dir, preset), "load_avg": os.getloadavg()}
+        if "f1" in parts:
+            results.setdefault("f1", {})[preset] = {**stamp, **f1_runs(seq_dir, preset, a.data),
+                                                    "load_avg": os.getloadavg()}
         write_results(a.results, results)
 
 

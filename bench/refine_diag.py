@@ -56,7 +56,7 @@ def setup(drive: Path, preset: str):  # noqa: ANN201
     data = prepare(seq, cfg, torch.device("cpu"), notes.append)
     geo = find_geometry(seq, data, cfg, notes.append)
     if geo.observable and cfg.ground_points_use in ("depth", "both"):
-        data.pool, data.use_depth = add_point_depth(data.pool, geo.gp, cfg.render_scale), True
+        data.pool, data.use_depth = add_point_depth(data.pool, geo.gp, cfg.render_scale, seq.cameras), True
     z = initial_heights(data.pool, data.grid, data.traj, geo.cam_h, cfg, ground_points=geo.init_points(cfg))
     run = _Run(data, float(np.median(z)), geo.cam_h, geo, torch.device("cpu"), notes, time.perf_counter(),
                torch.Generator().manual_seed(1))

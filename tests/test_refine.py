@@ -119,3 +119,27 @@ def test_heldout_psnr_counts_only_textured_faces(world):
     assert 0.2 < ev["textured_share"] < 0.8, ev
     assert ev["psnr_all"] < good["psnr"] - 5 < ev["psnr"] - 4, (good, ev)
     assert "psnr_all" not in good and "textured_share" not in good
+
+
+def test_refinement_leaves_the_surface_when_the_consistency_has_no_minimum(world, monkeypatch):
+    """A scan whose best offset is its range's edge (the real nuScenes clips: 31 and 63 cm walked down) found a
+    slope, not a height: the surface stays, the result says so, and a run warns."""
+    import pavemap.mesh.refine_run as rr
+
+    _, cfg, data, truth = world
+    calls = []
+
+    def edge_then_less(*a, **kw):  # the first scan a small step, then the edge of the range
+        calls.append(kw["offsets"])
+        return (0.04 if len(calls) == 1 else -max(kw["offsets"])), []
+
+    monkeypatch.setattr(rr, "consistency_scan", edge_then_less)
+    model = _model(data, truth + 0.05)
+    before = model.current_heights().clone()
+    done = rr.refine_offset(model, data.pool, data.pool.T, cfg)
+    assert done["no_minimum"] and done["offset_m"] == 0.0, done
+    assert torch.allclose(model.current_heights(), before), "the surface moved"
+    assert len(calls) == 2
+    warned: list[str] = []
+    rr.record(model, data.pool, data.pool.T, _cfg(), done, warned.append, {})
+    assert warned and "no minimum" in warned[0]

@@ -65,7 +65,32 @@ def _resize(a: np.ndarray, size: tuple[int, int], nearest: bool) -> np.ndarray:
         ys = np.minimum(((np.arange(size[1]) + 0.5) * h / size[1]).astype(np.int64), h - 1)
         xs = np.minimum(((np.arange(size[0]) + 0.5) * w / size[0]).astype(np.int64), w - 1)
         return a[ys][:, xs]
-    return np.asarray(Image.fromarray(a).resize(size, Image.Resampling.BOX))
+    h, w = a.shape[:2]
+    if h % size[1] == 0 and w % size[0] == 0:  # whole-pixel boxes: PIL's box filter is the exact area average
+        return np.asarray(Image.fromarray(a).resize(size, Image.Resampling.BOX))
+    # PIL's box filter averages the source pixels whose centres fall in each target pixel's box: at a ratio that is
+    # not whole (450 rows -> 112) the picture drifts by up to +-0.5 source px, in a sawtooth along the image, off
+    # where K puts it; that biased the multi-view consistency of the nuScenes-like drive by -1.1 cm (docs/refine.md).
+    # The exact area average: each target pixel is the mean of the source over its box, fractional pixels included.
+    out = _area_mean(_area_mean(a.astype(np.float32), size[1], 0), size[0], 1)
+    if a.dtype == np.uint8:
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    return out.astype(a.dtype)
+
+
+def _area_mean(a: np.ndarray, n: int, axis: int) -> np.ndarray:
+    """``a`` resized to ``n`` samples along ``axis`` by the exact area average: the integral of the piecewise
+    constant source (a cumulative sum, linear between pixel edges) differenced at the target boxes' edges."""
+    m = a.shape[axis]
+    c = np.concatenate([np.zeros_like(np.take(a, [0], axis)), np.cumsum(a, axis=axis, dtype=np.float64)], axis)
+    edges = np.arange(n + 1) * (m / n)
+    k = np.minimum(np.floor(edges).astype(np.int64), m - 1)
+    shape = [1] * a.ndim
+    shape[axis] = n + 1
+    f = (edges - k).reshape(shape)
+    integral = np.take(c, k, axis) + f * np.take(a, k, axis)
+    d = np.diff(integral, axis=axis) / (m / n)
+    return d.astype(np.float32)
 
 
 def _depth_samples(dep: np.ndarray, size: tuple[int, int], scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -75,16 +100,19 @@ def _depth_samples(dep: np.ndarray, size: tuple[int, int], scale: float) -> tupl
     Picking the one source pixel under each target centre would keep only ~scale^2 of the LiDAR returns,
     and render them half a source pixel off their ray (a bias of ~0.2 m in depth at 20 m at scale 0.25).
     Here every target pixel that holds a return keeps one, and its ray goes through the return itself:
-    ``u' = scale (u + 0.5) - 0.5`` (pixel-centre convention of :meth:`Camera.scaled`).
+    ``u' = sx (u + 0.5) - 0.5`` with each axis's true factor, the target size over the source's
+    (pixel-centre convention of :meth:`Camera.scaled`, which scales K by the same factors; ``scale`` rounded a
+    size, e.g. 450 rows at 0.25 -> 112, so the factor can differ from it).
     """
     w, h = size
+    sx, sy = w / dep.shape[1], h / dep.shape[0]
     ys, xs = np.nonzero(dep > 0)
     out = np.zeros((h, w), np.float32)
     uv = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).astype(np.float32)
     if ys.size == 0:
         return out, uv
-    ut = scale * (xs + 0.5) - 0.5
-    vt = scale * (ys + 0.5) - 0.5
+    ut = sx * (xs + 0.5) - 0.5
+    vt = sy * (ys + 0.5) - 0.5
     tx = np.clip(np.rint(ut), 0, w - 1).astype(np.int64)
     ty = np.clip(np.rint(vt), 0, h - 1).astype(np.int64)
     key = ty * w + tx

@@ -356,7 +356,8 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
     if cfg.neighbour_m > 0 and ok.any():
         ok[ok] &= agrees_with_neighbours(tri.points[ok], 1.0, cfg.neighbour_m)
     stats.update(tracks=int(n_tracks), t_total_s=round(time.perf_counter() - t0, 2))
-    gp = _assemble(keys, tri, ok, np.concatenate(road), track, vid, uv, semantic, cfg.scale, stats)
+    sxy = np.array([seq.cameras[k[1]].scale_xy(cfg.scale) for k in keys], np.float64).reshape(-1, 2)
+    gp = _assemble(keys, tri, ok, np.concatenate(road), track, vid, uv, semantic, cfg.scale, sxy, stats)
     if len(gp) < min_points:
         gp.observable = False
         gp.reason = (f"only {len(gp)} ground points triangulated (need {min_points}): too little baseline or "
@@ -370,10 +371,11 @@ def _empty(keys, semantic, reason, stats) -> GroundPoints:
                         False, reason, stats)
 
 
-def _assemble(keys, tri, ok, road, track, vid, uv, semantic, scale, stats) -> GroundPoints:
+def _assemble(keys, tri, ok, road, track, vid, uv, semantic, scale, sxy, stats) -> GroundPoints:
     keep_obs = ok[track] & tri.used
     new_id = np.cumsum(ok) - 1
-    uv_full = (uv[keep_obs] + 0.5) / scale - 0.5
+    # each axis by its true factor sxy (V, 2) of the view (Camera.scale_xy: the scaled K's), not ``scale``
+    uv_full = (uv[keep_obs] + 0.5) / sxy[vid[keep_obs]] - 0.5
     return GroundPoints(keys, tri.points[ok], tri.n_views[ok], tri.rms_px[ok] / scale, tri.angle_deg[ok],
                         road[ok], new_id[track[keep_obs]], vid[keep_obs], uv_full, tri.depth[keep_obs], semantic,
                         True, "", stats)

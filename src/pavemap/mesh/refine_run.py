@@ -21,7 +21,13 @@ FINE = tuple(round(0.005 * k, 3) for k in range(-6, 7))  # m: +-3 cm in 5 mm aro
 @torch.no_grad()
 def refine_offset(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, cfg: MeshConfig) -> dict:
     """Move the model's surface by the global offset at which the training views agree best (coarse scans on
-    images blurred by 2 px, then a fine one at 1 px); returns what it did (``offset_m``, ``seconds``)."""
+    images blurred by 2 px, then a fine one at 1 px); returns what it did (``offset_m``, ``seconds``, and
+    ``no_minimum`` true when it left the surface where it was).
+
+    A coarse scan whose best offset is the edge of its range has found no minimum, only a slope: the views
+    agree better and better the farther the surface goes. On the real nuScenes clips (SfM poses) that walked
+    the surface 31 and 63 cm down, the camera 1.71 and 2.13 m above it (docs/refine.md): the consistency
+    there is no evidence of a height, so the surface keeps the closed form's."""
     t = time.perf_counter()
     rgb, mask = pool_images(pool)
     xy = torch.from_numpy(model.grid.vertex_xy())
@@ -36,9 +42,12 @@ def refine_offset(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, cfg: M
                                   offsets=offsets)
         if off is None:
             break
+        if offsets is COARSE and abs(off) >= max(COARSE) - 1e-9:
+            model.z_base.add_(-total)
+            return {"offset_m": 0.0, "no_minimum": True, "seconds": round(time.perf_counter() - t, 2)}
         model.z_base.add_(float(off))
         total, last = total + float(off), float(off)
-    return {"offset_m": round(total, 4), "seconds": round(time.perf_counter() - t, 2)}
+    return {"offset_m": round(total, 4), "no_minimum": False, "seconds": round(time.perf_counter() - t, 2)}
 
 
 @torch.no_grad()
@@ -61,6 +70,9 @@ def record(model: RoadMeshModel, pool: PixelPool, T: torch.Tensor, cfg: MeshConf
     when the views agree best more than ``mesh.check_max_consistency_m`` off the surface."""
     if refined is not None:
         metrics["refine"] = refined
+        if refined.get("no_minimum"):
+            warn("mesh.refine left the surface as the closed form made it: the views' consistency has no "
+                 f"minimum within +-{100 * max(COARSE):.0f} cm of it (no evidence of the height)")
     if cfg.consistency_check:
         metrics["consistency"] = c = consistency_metrics(model, pool, T, cfg)
         if c["flagged"]:

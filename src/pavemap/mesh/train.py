@@ -106,7 +106,7 @@ def _reconstruct(seq: Sequence, out_dir: Path | None, cfg: MeshConfig, progress:
     data = prepare(seq, cfg, device, warn, heldout_frames)
     geo = find_geometry(seq, data, cfg, warn)
     if geo.observable and cfg.ground_points_use in ("depth", "both"):
-        data.pool, data.use_depth = add_point_depth(data.pool, geo.gp, cfg.render_scale), True
+        data.pool, data.use_depth = add_point_depth(data.pool, geo.gp, cfg.render_scale, seq.cameras), True
     relief_state: dict = {}
     z_vertices = initial_heights(data.pool, data.grid, data.traj, geo.cam_h, cfg, ground_points=geo.init_points(cfg),
                                  relief_state=relief_state)
