@@ -41,7 +41,9 @@ def turn_drive(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("turn")
     p = turn_path()
-    truth = synthesize(root / "truth", preset="kitti-like", seed=0, frames=len(p), scale=0.5, depth="none",
+    # the preset's own size, KITTI's 1241 x 376: at half that (620 x 188) the turn's feature-poor stretch leaves
+    # 17-19 SIFT matches a pair, COLMAP registers 12 of 19 and the planar motion keeps all at 1.5 % (docs/sfm.md)
+    truth = synthesize(root / "truth", preset="kitti-like", seed=0, frames=len(p), scale=1.0, depth="none",
                        progress=False, path=p.tolist(), hz=2.0)
     cam = truth.cameras["CAM_FRONT"]
     (root / "cameras.json").write_text(json.dumps(
@@ -144,11 +146,16 @@ def test_a_video_cut_by_a_grey_stretch_is_imported_as_two_parts(turn_drive, tmp_
     images, cameras, gt = turn_drive
     files = sorted(images.iterdir())
     h, w = cv2.imread(str(files[0])).shape[:2]
+    w -= w % 2  # MJPG frames have an even width: the last column goes, K stays
+    cam = json.loads(cameras.read_text())
+    cam["cameras"]["CAM_FRONT"]["width"] = w
+    (tmp_path / "cameras.json").write_text(json.dumps(cam))
     vw = cv2.VideoWriter(str(tmp_path / "drive.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, (w, h))
     for k, f in enumerate(files):
-        vw.write(np.full((h, w, 3), 128, np.uint8) if 7 <= k < 13 else cv2.imread(str(f)))
+        vw.write(np.full((h, w, 3), 128, np.uint8) if 7 <= k < 13 else cv2.imread(str(f))[:, :w])
     vw.release()
-    import_video(tmp_path / "drive.avi", cameras, "sfm", tmp_path / "seq", fps=None, camera_height=MOUNT_HEIGHT)
+    import_video(tmp_path / "drive.avi", tmp_path / "cameras.json", "sfm", tmp_path / "seq", fps=None,
+                 camera_height=MOUNT_HEIGHT)
     report = json.loads((tmp_path / "seq" / "sfm.json").read_text())
     main = read_sequence(tmp_path / "seq")
     assert [f.index for f in main.frames] == list(range(0, 7))
@@ -350,7 +357,7 @@ def test_sfm_masks_what_moves(turn_drive, tmp_path):
     masks, said = movable_masks("auto", device="cpu")  # weights there: the masks must come
     assert masks is not None, said
     m = masks(sorted(images.iterdir())[0])  # the synthetic world's parked cars, if any, are masked; no road
-    assert m is not None and m.shape == (188, 620) and m.mean() < 0.5
+    assert m is not None and m.shape == (376, 1241) and m.mean() < 0.5
 
 
 @pytest.mark.parametrize(("yaw_deg", "sign"), [(0.0, 1), (7.5, 1), (-12.0, 1), (5.0, -1)])

@@ -115,7 +115,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         if "intrinsics" in o:
             res.info["intrinsics_refinement"] = o["intrinsics"]
         _set_scale(res, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
-        if method == "auto" and res.info.get("method") == "pycolmap SfM" and res.info["steps"]["repaired"]:
+        if method == "auto" and res.info.get("method") == "pycolmap SfM" and (
+                res.info["steps"]["repaired"] or res.registered[keyframes].sum() < keyframes.sum()):
             res = _better_of(res, images, keyframes, camera, camera_height, ego_mask, limits, road_steps,
                              dense_scale, hint, masks)
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
@@ -223,20 +224,21 @@ def _mover_masks(movers: Callable[[Path], np.ndarray | None], images: list[Path]
     return out
 
 
-def _road_share(res: SfmResult) -> float:
-    """Share of a path's steps whose length the road's image motion measured (trusted): how well the road, the
-    one thing both methods are judged on without truth, agrees with the path's rotations and directions."""
-    rs = res.info.get("road_steps") or {}
-    return rs.get("measured", 0) / max(1, rs.get("steps", 0))
+def _road_measured(res: SfmResult) -> int:
+    """How many of a path's steps the road's image motion measured (trusted): how well the road, the one thing
+    both methods are judged on without truth, agrees with the path's rotations and directions, and over how
+    much of the clip. A count, not a share: a path that keeps more frames with steps the road confirms is the
+    better one."""
+    return int((res.info.get("road_steps") or {}).get("measured", 0))
 
 
 def _better_of(res: SfmResult, images: list[Path], keyframes: np.ndarray, camera: Camera, camera_height: float,
                ego_mask: np.ndarray | None, limits: PartLimits, road_steps: bool, dense_scale: bool,
                hint: str, masks: list[Path | None] | None = None) -> SfmResult:
-    """COLMAP's path needed steps repaired onto the car's heading: the car's planar motion is tried too and the
-    path whose steps the road measured more often is kept (COLMAP on a tie); ``info["alternatives"]`` says
-    what each scored. (A synthetic stop-and-go: COLMAP 2.2 % off its true path after three repairs, the
-    planar motion 0.9 %.)"""
+    """COLMAP's path needed steps repaired onto the car's heading, or left keyframes unregistered: the car's
+    planar motion is tried too and the path with more steps the road measured is kept (COLMAP on a tie);
+    ``info["alternatives"]`` says what each scored. (A synthetic stop-and-go: COLMAP 2.2 % off its true path
+    after three repairs, the planar motion 0.9 %.)"""
     base = {k: v for k, v in res.info.items()
             if k in ("images", "keyframes", "camera_height_m", "keyframe_index", "movers")}
     try:
@@ -246,13 +248,14 @@ def _better_of(res: SfmResult, images: list[Path], keyframes: np.ndarray, camera
     except PavemapError as e:
         res.info["alternatives"] = {"planar motion": f"refused: {e}"}
         return res
-    scores = {"pycolmap SfM": round(_road_share(res), 3), "planar motion": round(_road_share(alt), 3)}
+    scores = {"pycolmap SfM": _road_measured(res), "planar motion": _road_measured(alt)}
     best = alt if scores["planar motion"] > scores["pycolmap SfM"] else res
-    best.info["alternatives"] = {"road_measured_share": scores,
-                                 "why": "COLMAP's path had steps repaired onto the car's heading"}
+    why = ("COLMAP's path had steps repaired onto the car's heading" if res.info["steps"]["repaired"] else
+           f"COLMAP registered {res.info.get('registered_by_sfm', int(res.registered.sum()))} of "
+           f"{int(keyframes.sum())} keyframes")
+    best.info["alternatives"] = {"road_measured_steps": scores, "why": why}
     if best is alt:
-        best.info["sfm_failure"] = ("COLMAP's path had steps off the car's heading; the planar motion fits "
-                                    "the road better")
+        best.info["sfm_failure"] = f"{why}; the road measures more of the planar motion's steps"
         best.info["registered_by_sfm"] = res.info.get("registered_by_sfm")
     return best
 
