@@ -1,0 +1,222 @@
+"""Operating point of a detector: precision, recall and F1 against the run's confidence threshold.
+
+mAP is threshold-free; what a user of ``pavemap run`` sees is the set of boxes with
+``conf >= filter.tau_conf``. This part predicts once at conf 0.01 (as the run does: ``detector.conf``,
+NMS IoU 0.5, BGR arrays in batches of 8), then for each tau on a grid counts, per image:
+
+- greedy matching of predicted boxes to truth boxes, highest confidence first, each truth box taken
+  at most once, IoU >= 0.5; **class-aware** (same class only) and **class-agnostic** (any defect box
+  on any defect: a crack called the wrong crack class is still a found defect for a road engineer);
+- precision, recall, F1 overall and per class (class-aware: by the class of box and truth; agnostic:
+  recall by the truth's class, precision by the predicted class);
+- false boxes per background frame (the frames without a truth box; Czech val has 42).
+
+Greedy matching highest-confidence first makes the match of a box independent of every box below it,
+so one matching at conf 0.01 serves every tau >= 0.01: the boxes matched at tau are the matched boxes
+with conf >= tau.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+CLASSES = ("D00", "D10", "D20", "D40")
+IOU_MATCH = 0.5
+
+
+@dataclass
+class ImageResult:
+    """One photo: predictions (conf >= the prediction floor) and truth, in original pixels.
+
+    pred_xyxy (N, 4), pred_cls (N,) int pavemap class, pred_conf (N,); true_xyxy (M, 4), true_cls (M,).
+    """
+
+    name: str
+    pred_xyxy: np.ndarray
+    pred_cls: np.ndarray
+    pred_conf: np.ndarray
+    true_xyxy: np.ndarray
+    true_cls: np.ndarray
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of every box of ``a`` (N, 4 xyxy) with every box of ``b`` (M, 4 xyxy) → (N, M)."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((len(a), len(b)))
+    lt = np.maximum(a[:, None, :2], b[None, :, :2])  # (N, M, 2)
+    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.prod(np.clip(rb - lt, 0, None), axis=2)  # (N, M)
+    area_a = np.prod(np.clip(a[:, 2:] - a[:, :2], 0, None), axis=1)  # (N,)
+    area_b = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)  # (M,)
+    union = area_a[:, None] + area_b[None, :] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def greedy_match(im: ImageResult, class_aware: bool) -> np.ndarray:
+    """Truth index matched by each prediction (N,) int, -1 where none: highest confidence first, each truth
+    once, the unmatched truth of highest IoU >= 0.5 (same class when ``class_aware``)."""
+    iou = iou_matrix(im.pred_xyxy, im.true_xyxy)  # (N, M)
+    if class_aware:
+        iou = np.where(im.pred_cls[:, None] == im.true_cls[None, :], iou, -1.0)
+    match = np.full(len(im.pred_conf), -1, dtype=np.int64)
+    free = np.ones(len(im.true_cls), dtype=bool)
+    for i in np.argsort(-im.pred_conf, kind="stable"):  # loop over boxes only; the IoU is vectorised
+        if not free.any():
+            break
+        cand = np.where(free, iou[i], -1.0)
+        j = int(np.argmax(cand))
+        if cand[j] >= IOU_MATCH:
+            match[i] = j
+            free[j] = False
+    return match
+
+
+def _r4(v: float | None) -> float | None:
+    return None if v is None else round(v, 4)
+
+
+def _f1(p: float | None, r: float | None) -> float | None:
+    """Harmonic mean; 0 when nothing was found (recall 0), None where precision or recall is undefined."""
+    if r == 0.0:
+        return 0.0
+    if p is None or r is None:
+        return None
+    return _r4(2 * p * r / (p + r)) if p + r > 0 else 0.0
+
+
+def _prf(tp: int, n_pred: int, n_true: int) -> dict:
+    p = tp / n_pred if n_pred else None
+    r = tp / n_true if n_true else None
+    f1 = 2 * tp / (n_pred + n_true) if n_pred + n_true else None
+    return {"precision": _r4(p), "recall": _r4(r), "f1": _r4(f1), "tp": tp, "boxes": n_pred, "truth": n_true}
+
+
+def sweep(images: list[ImageResult], taus: list[float], class_aware: bool) -> dict:
+    """Per tau: overall and per-class precision / recall / F1 (+ counts), and the F1-maximising tau."""
+    conf = np.concatenate([im.pred_conf for im in images]) if images else np.zeros(0)  # (P,) all boxes
+    pcls = np.concatenate([im.pred_cls for im in images]) if images else np.zeros(0, int)
+    matched_true_cls = []  # (P,) the class of the truth each box matched, -1 = a false box
+    for im in images:
+        m = greedy_match(im, class_aware)
+        matched_true_cls.append(np.where(m >= 0, im.true_cls[np.clip(m, 0, None)] if len(im.true_cls) else -1, -1))
+    mtc = np.concatenate(matched_true_cls) if images else np.zeros(0, int)
+    tcls = np.concatenate([im.true_cls for im in images]) if images else np.zeros(0, int)
+    rows = {}
+    for t in taus:
+        keep = conf >= t
+        row = _prf(int((keep & (mtc >= 0)).sum()), int(keep.sum()), len(tcls))
+        row["per_class"] = {}
+        for c, name in enumerate(CLASSES):
+            n_pred_c = int((keep & (pcls == c)).sum())
+            tp_pred_c = int((keep & (pcls == c) & (mtc >= 0)).sum())  # boxes of class c that found a defect
+            tp_true_c = int((keep & (mtc == c)).sum())  # truths of class c found
+            pc = _prf(tp_true_c, n_pred_c, int((tcls == c).sum()))
+            pc["precision"] = _r4(tp_pred_c / n_pred_c) if n_pred_c else None
+            pc["f1"] = _f1(pc["precision"], pc["recall"])
+            row["per_class"][name] = pc
+        rows[f"{t:.2f}"] = row
+    best = max(rows, key=lambda k: (rows[k]["f1"] or 0.0, -float(k)))
+    return {"by_tau": rows, "best_tau": float(best), "best_f1": rows[best]["f1"]}
+
+
+def background_boxes(images: list[ImageResult], taus: list[float]) -> dict:
+    """False boxes per background frame (the images without truth) and frames with a box, per tau."""
+    bg = [im for im in images if len(im.true_cls) == 0]
+    out: dict = {"frames": len(bg)}
+    for t in taus:
+        n = [int((im.pred_conf >= t).sum()) for im in bg]
+        out[f"{t:.2f}"] = {"boxes_per_frame": round(sum(n) / max(len(bg), 1), 3),
+                           "frames_with_a_box": sum(k > 0 for k in n)}
+    return out
+
+
+def read_yolo_labels(path: Path, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """YOLO txt (class cx cy w h, normalised) → (M, 4) xyxy pixels and (M,) class; missing file = no box."""
+    if not path.is_file():
+        return np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
+    rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    if not rows:
+        return np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
+    a = np.array([[float(x) for x in r[:5]] for r in rows])  # (M, 5)
+    cx, cy, bw, bh = a[:, 1] * w, a[:, 2] * h, a[:, 3] * w, a[:, 4] * h
+    return np.stack([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2], axis=1), a[:, 0].astype(np.int64)
+
+
+def predict_images(model, paths: list[Path], label_of, imgsz: int, conf: float = 0.01,
+                   batch: int = 8) -> list[ImageResult]:
+    """Predict each photo as ``pavemap run`` does (BGR arrays, NMS IoU 0.5, classes mapped by name) and pair
+    it with its truth (``label_of(path) -> label file``)."""
+    from PIL import Image
+
+    from pavemap.detect.classmap import build_class_map
+
+    lut, _ = build_class_map(model.names, None)
+    out: list[ImageResult] = []
+    for i in range(0, len(paths), batch):
+        chunk = paths[i:i + batch]
+        imgs = [np.ascontiguousarray(np.asarray(Image.open(p).convert("RGB"))[:, :, ::-1]) for p in chunk]
+        res = model.predict(imgs, imgsz=imgsz, conf=conf, iou=0.5, device="cpu", batch=len(imgs), verbose=False)
+        for p, im, r in zip(chunk, imgs, res, strict=True):
+            xyxy = r.boxes.xyxy.cpu().numpy().astype(np.float64)  # (N, 4)
+            mcls = r.boxes.cls.cpu().numpy().astype(np.int64)
+            ours = lut[np.clip(mcls, 0, len(lut) - 1)] if len(mcls) else mcls
+            keep = ours >= 0
+            tx, tc = read_yolo_labels(label_of(p), im.shape[1], im.shape[0])
+            out.append(ImageResult(p.name, xyxy[keep], ours[keep], r.boxes.conf.cpu().numpy()[keep].astype(float),
+                                   tx, tc))
+    return out
+
+
+def save_cache(path: Path, sets: dict[str, list[ImageResult]]) -> None:
+    """All predictions and truth in one npz (a rerun of the sweep or the figure needs no prediction)."""
+    arrs = {}
+    for ds, ims in sets.items():
+        for k, im in enumerate(ims):
+            for f in ("pred_xyxy", "pred_cls", "pred_conf", "true_xyxy", "true_cls"):
+                arrs[f"{ds}/{k:05d}/{im.name}/{f}"] = getattr(im, f)
+    tmp = path.with_name(path.name + ".part.npz")
+    np.savez_compressed(tmp, **arrs)
+    tmp.replace(path)
+
+
+def load_cache(path: Path) -> dict[str, list[ImageResult]]:
+    """The inverse of :func:`save_cache`."""
+    z = np.load(path)
+    by: dict[str, dict[tuple[int, str], dict]] = {}
+    for key in z.files:
+        ds, k, name, f = key.split("/")
+        by.setdefault(ds, {}).setdefault((int(k), name), {})[f] = z[key]
+    return {ds: [ImageResult(name, **d[(k, name)]) for k, name in sorted(d)] for ds, d in by.items()}
+
+
+def czech_val_images(czech: Path) -> list[Path]:
+    """The Czech ``val.txt`` photos (186)."""
+    rels = [ln.strip() for ln in (czech / "val.txt").read_text().splitlines() if ln.strip()]
+    return [(czech / r).resolve() for r in rels]
+
+
+def operating_point(model, data: Path, imgsz: int, taus: list[float], cache: Path | None) -> dict:
+    """The whole part: predict (or read ``cache``), sweep both matchings on both datasets, background boxes."""
+    if cache is not None and cache.is_file():
+        sets = load_cache(cache)
+    else:
+        cz, cn = data / "rdd2022-czech", data / "rdd2022-china-motorbike"
+        sets = {"czech_val": predict_images(model, czech_val_images(cz), lambda p: cz / "labels" / f"{p.stem}.txt",
+                                            imgsz),
+                "china_val": predict_images(model, sorted((cn / "images" / "val").glob("*.jpg")),
+                                            lambda p: cn / "labels" / "val" / f"{p.stem}.txt", imgsz)}
+        if cache is not None:
+            save_cache(cache, sets)
+    out: dict = {}
+    for ds, ims in sets.items():
+        out[ds] = {"images": len(ims), "class_aware": sweep(ims, taus, True),
+                   "class_agnostic": sweep(ims, taus, False)}
+        if ds == "czech_val":
+            bg = background_boxes(ims, taus)
+            out[ds]["background"] = bg
+            for mode in ("class_aware", "class_agnostic"):
+                out[ds][mode]["bg_boxes_per_frame_at_best"] = bg[f"{out[ds][mode]['best_tau']:.2f}"]["boxes_per_frame"]
+    return out
