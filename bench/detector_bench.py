@@ -95,6 +95,8 @@ def main() -> None:
     ap.add_argument("--results", type=Path, default=Path(__file__).parent / "results" / "detector.json")
     ap.add_argument("--note", default="")
     ap.add_argument("--parts", choices=("map", "thresholds"), default="map")
+    ap.add_argument("--figure", type=Path, default=None,
+                    help="thresholds: PNG of the Czech val operating point (first weights, first imgsz)")
     ap.add_argument("--pred-cache", type=Path, default=None,
                     help="thresholds: npz of the predictions, written once and reused (one weights, one imgsz)")
     a = ap.parse_args()
@@ -132,7 +134,7 @@ def _thresholds(a: argparse.Namespace) -> None:
     """The ``thresholds`` part: merge ``operating_point_imgsz<SZ>`` into the existing results file."""
     import json
 
-    from detector_thresholds import operating_point
+    from detector_thresholds import operating_point, plot_operating_point
     from pavemap.detect.yolo import _import_ultralytics, load_detector
 
     _import_ultralytics()
@@ -152,6 +154,8 @@ def _thresholds(a: argparse.Namespace) -> None:
                         "greedy matching IoU >= 0.5 highest conf first; precision/recall/F1 and Czech background "
                         "boxes per frame at each tau (detections kept: conf >= tau)",
                 "model": name, "weights": path, "imgsz": sz, "note": a.note, "run": run, **op}
+            if a.figure is not None and (spec, sz) == (a.weights[0], a.imgsz[0]):
+                plot_operating_point(res[f"operating_point_imgsz{sz}"], "czech_val", a.figure)
             for ds, d in op.items():
                 print(name, sz, ds, {m: (d[m]["best_tau"], d[m]["best_f1"]) for m in ("class_aware", "class_agnostic")},
                       flush=True)

@@ -220,3 +220,39 @@ def operating_point(model, data: Path, imgsz: int, taus: list[float], cache: Pat
             for mode in ("class_aware", "class_agnostic"):
                 out[ds][mode]["bg_boxes_per_frame_at_best"] = bg[f"{out[ds][mode]['best_tau']:.2f}"]["boxes_per_frame"]
     return out
+
+
+def plot_operating_point(op: dict, ds: str, out: Path, target_bg: float = 0.15) -> None:
+    """Precision, recall, F1 (class-aware solid, agnostic dashed) and background boxes per frame against tau
+    for dataset ``ds`` of an ``operating_point_imgsz*`` entry; a small PNG at ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    aw, ag = op[ds]["class_aware"], op[ds]["class_agnostic"]
+    taus = [float(t) for t in aw["by_tau"]]
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
+    for key, colour in (("precision", "tab:blue"), ("recall", "tab:orange"), ("f1", "tab:green")):
+        ax.plot(taus, [aw["by_tau"][f"{t:.2f}"][key] for t in taus], "-o", ms=3, color=colour, label=key)
+        ax.plot(taus, [ag["by_tau"][f"{t:.2f}"][key] for t in taus], "--", color=colour, lw=1)
+    ax.axvline(aw["best_tau"], color="tab:green", lw=0.8, ls=":")
+    ax.set(xlabel="tau_conf (keep conf >= tau)", ylabel="precision / recall / F1", ylim=(0, 1))
+    lines, labels = ax.get_legend_handles_labels()
+    if "background" in op[ds]:
+        bg = op[ds]["background"]
+        ax2 = ax.twinx()
+        ax2.plot(taus, [bg[f"{t:.2f}"]["boxes_per_frame"] for t in taus], "-s", ms=3, color="tab:red",
+                 label="false boxes / background frame")
+        ax2.axhline(target_bg, color="tab:red", lw=0.8, ls=":", label=f"target <= {target_bg}")
+        ax2.set(ylabel="false boxes per background frame", ylim=(0, None))
+        more = ax2.get_legend_handles_labels()
+        lines, labels = lines + more[0], labels + more[1]
+    ax.legend(lines, labels, fontsize=7, loc="upper center")
+    ax.set_title(f"{ds}, imgsz {op['imgsz']} (solid: class-aware, dashed: class-agnostic; "
+                 f"{op[ds]['images']} photos)", fontsize=8)
+    fig.tight_layout()
+    tmp = out.with_name(out.stem + ".part.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(out)
