@@ -157,7 +157,7 @@ def _thresholds(a: argparse.Namespace) -> None:
             if a.figure is not None and (spec, sz) == (a.weights[0], a.imgsz[0]):
                 plot_operating_point(res[f"operating_point_imgsz{sz}"], "czech_val", a.figure)
             for ds, d in op.items():
-                print(name, sz, ds, {m: (d[m]["best_tau"], d[m]["best_f1"]) for m in ("class_aware", "class_agnostic")},
+                print(name, sz, ds, {k: v for k, v in d.items() if k.startswith("best")},
                       flush=True)
     from pavemap.io.atomic import atomic_write_json
 

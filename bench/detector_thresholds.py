@@ -95,41 +95,53 @@ def _prf(tp: int, n_pred: int, n_true: int) -> dict:
 
 
 def sweep(images: list[ImageResult], taus: list[float], class_aware: bool) -> dict:
-    """Per tau: overall and per-class precision / recall / F1 (+ counts), and the F1-maximising tau."""
-    conf = np.concatenate([im.pred_conf for im in images]) if images else np.zeros(0)  # (P,) all boxes
-    pcls = np.concatenate([im.pred_cls for im in images]) if images else np.zeros(0, int)
-    matched_true_cls = []  # (P,) the class of the truth each box matched, -1 = a false box
+    """The F1-maximising tau, and per tau (records, a table each): overall ``rows`` and ``per_class``
+    precision / recall / F1 with their counts (tp, boxes kept, truth boxes)."""
+    conf = np.concatenate([im.pred_conf for im in images])  # (P,) every box of every image
+    pcls = np.concatenate([im.pred_cls for im in images])  # (P,)
+    tcls = np.concatenate([im.true_cls for im in images])  # (T,)
+    mtc = []  # per image (N,): the class of the truth each box matched, -1 = a false box
     for im in images:
         m = greedy_match(im, class_aware)
-        matched_true_cls.append(np.where(m >= 0, im.true_cls[np.clip(m, 0, None)] if len(im.true_cls) else -1, -1))
-    mtc = np.concatenate(matched_true_cls) if images else np.zeros(0, int)
-    tcls = np.concatenate([im.true_cls for im in images]) if images else np.zeros(0, int)
-    rows = {}
+        mtc.append(im.true_cls[m] if len(im.true_cls) else m)  # m == -1 indexes the last truth: masked below
+        mtc[-1] = np.where(m >= 0, mtc[-1], -1)
+    mtc = np.concatenate(mtc)  # (P,)
+    rows, per_class = [], []
     for t in taus:
         keep = conf >= t
-        row = _prf(int((keep & (mtc >= 0)).sum()), int(keep.sum()), len(tcls))
-        row["per_class"] = {}
+        rows.append({"tau": t, **_prf(int((keep & (mtc >= 0)).sum()), int(keep.sum()), len(tcls))})
         for c, name in enumerate(CLASSES):
             n_pred_c = int((keep & (pcls == c)).sum())
             tp_pred_c = int((keep & (pcls == c) & (mtc >= 0)).sum())  # boxes of class c that found a defect
-            tp_true_c = int((keep & (mtc == c)).sum())  # truths of class c found
-            pc = _prf(tp_true_c, n_pred_c, int((tcls == c).sum()))
+            pc = _prf(int((keep & (mtc == c)).sum()), n_pred_c, int((tcls == c).sum()))  # tp: truths of c found
             pc["precision"] = _r4(tp_pred_c / n_pred_c) if n_pred_c else None
             pc["f1"] = _f1(pc["precision"], pc["recall"])
-            row["per_class"][name] = pc
-        rows[f"{t:.2f}"] = row
-    best = max(rows, key=lambda k: (rows[k]["f1"] or 0.0, -float(k)))
-    return {"by_tau": rows, "best_tau": float(best), "best_f1": rows[best]["f1"]}
+            per_class.append({"tau": t, "class": name, **pc})
+    best = max(rows, key=lambda r: (r["f1"] or 0.0, -r["tau"]))
+    return {"best_tau": best["tau"], "best_f1": best["f1"], "rows": rows, "per_class": per_class}
 
 
-def background_boxes(images: list[ImageResult], taus: list[float]) -> dict:
-    """False boxes per background frame (the images without truth) and frames with a box, per tau."""
+def background_boxes(images: list[ImageResult], taus: list[float]) -> list[dict]:
+    """Per tau: false boxes per background frame (the images without truth) and frames with a box."""
     bg = [im for im in images if len(im.true_cls) == 0]
-    out: dict = {"frames": len(bg)}
+    out = []
     for t in taus:
         n = [int((im.pred_conf >= t).sum()) for im in bg]
-        out[f"{t:.2f}"] = {"boxes_per_frame": round(sum(n) / max(len(bg), 1), 3),
-                           "frames_with_a_box": sum(k > 0 for k in n)}
+        out.append({"tau": t, "boxes_per_frame": round(sum(n) / max(len(bg), 1), 3),
+                    "frames_with_a_box": sum(k > 0 for k in n), "frames": len(bg)})
+    return out
+
+
+def summary(aware: dict, agnostic: dict, bg: list[dict] | None) -> list[dict]:
+    """One table row per tau: the class-aware and class-agnostic figures side by side, background boxes."""
+    out = []
+    for k, (a, g) in enumerate(zip(aware["rows"], agnostic["rows"], strict=True)):
+        row = {"tau": a["tau"], "boxes": a["boxes"], "precision": a["precision"], "recall": a["recall"],
+               "f1": a["f1"], "precision_agnostic": g["precision"], "recall_agnostic": g["recall"],
+               "f1_agnostic": g["f1"]}
+        if bg is not None:
+            row["bg_boxes_per_frame"] = bg[k]["boxes_per_frame"]
+        out.append(row)
     return out
 
 
@@ -212,13 +224,20 @@ def operating_point(model, data: Path, imgsz: int, taus: list[float], cache: Pat
             save_cache(cache, sets)
     out: dict = {}
     for ds, ims in sets.items():
-        out[ds] = {"images": len(ims), "class_aware": sweep(ims, taus, True),
-                   "class_agnostic": sweep(ims, taus, False)}
-        if ds == "czech_val":
-            bg = background_boxes(ims, taus)
+        aware, agnostic = sweep(ims, taus, True), sweep(ims, taus, False)
+        bg = background_boxes(ims, taus) if ds == "czech_val" else None
+        out[ds] = {"images": len(ims), "truth_boxes": aware["rows"][0]["truth"],
+                   "background_frames": sum(len(im.true_cls) == 0 for im in ims)}
+        for mode, sw in (("class_aware", aware), ("class_agnostic", agnostic)):
+            out[ds][f"best_tau_{mode}"] = sw["best_tau"]
+            out[ds][f"best_f1_{mode}"] = sw["best_f1"]
+            if bg is not None:
+                out[ds][f"bg_boxes_per_frame_at_best_{mode}"] = bg[taus.index(sw["best_tau"])]["boxes_per_frame"]
+        out[ds]["summary"] = summary(aware, agnostic, bg)
+        out[ds]["class_aware_per_class"] = aware["per_class"]
+        out[ds]["class_agnostic_per_class"] = agnostic["per_class"]
+        if bg is not None:
             out[ds]["background"] = bg
-            for mode in ("class_aware", "class_agnostic"):
-                out[ds][mode]["bg_boxes_per_frame_at_best"] = bg[f"{out[ds][mode]['best_tau']:.2f}"]["boxes_per_frame"]
     return out
 
 
@@ -230,19 +249,18 @@ def plot_operating_point(op: dict, ds: str, out: Path, target_bg: float = 0.15) 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    aw, ag = op[ds]["class_aware"], op[ds]["class_agnostic"]
-    taus = [float(t) for t in aw["by_tau"]]
+    rows = op[ds]["summary"]
+    taus = [r["tau"] for r in rows]
     fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
     for key, colour in (("precision", "tab:blue"), ("recall", "tab:orange"), ("f1", "tab:green")):
-        ax.plot(taus, [aw["by_tau"][f"{t:.2f}"][key] for t in taus], "-o", ms=3, color=colour, label=key)
-        ax.plot(taus, [ag["by_tau"][f"{t:.2f}"][key] for t in taus], "--", color=colour, lw=1)
-    ax.axvline(aw["best_tau"], color="tab:green", lw=0.8, ls=":")
+        ax.plot(taus, [r[key] for r in rows], "-o", ms=3, color=colour, label=key)
+        ax.plot(taus, [r[f"{key}_agnostic"] for r in rows], "--", color=colour, lw=1)
+    ax.axvline(op[ds]["best_tau_class_aware"], color="tab:green", lw=0.8, ls=":")
     ax.set(xlabel="tau_conf (keep conf >= tau)", ylabel="precision / recall / F1", ylim=(0, 1))
     lines, labels = ax.get_legend_handles_labels()
-    if "background" in op[ds]:
-        bg = op[ds]["background"]
+    if "bg_boxes_per_frame" in rows[0]:
         ax2 = ax.twinx()
-        ax2.plot(taus, [bg[f"{t:.2f}"]["boxes_per_frame"] for t in taus], "-s", ms=3, color="tab:red",
+        ax2.plot(taus, [r["bg_boxes_per_frame"] for r in rows], "-s", ms=3, color="tab:red",
                  label="false boxes / background frame")
         ax2.axhline(target_bg, color="tab:red", lw=0.8, ls=":", label=f"target <= {target_bg}")
         ax2.set(ylabel="false boxes per background frame", ylim=(0, None))
