@@ -11,6 +11,10 @@ recall overall and mAP50 per class. False boxes per background frame: the Czech 
 boxes, predicted at each ``--tau`` (the run's ``filter.tau_conf`` decides what survives).
 Speed: median ms per frame of ``predict`` on 20 Czech photos, batch 1, at each ``--imgsz``, on this CPU
 with torch's threads as they are. Writes ``bench/results/detector.json``.
+
+``--parts thresholds`` (instead of the default ``map``): the operating point of each weights file at each
+``--imgsz`` (precision, recall, F1 and background boxes against tau 0.05..0.60, ``detector_thresholds.py``),
+added to the existing ``detector.json`` under ``operating_point_imgsz<SZ>`` (other keys kept).
 """
 
 from __future__ import annotations
@@ -90,7 +94,15 @@ def main() -> None:
     ap.add_argument("--tau", type=float, nargs="+", default=[0.05, 0.10, 0.25, 0.40])
     ap.add_argument("--results", type=Path, default=Path(__file__).parent / "results" / "detector.json")
     ap.add_argument("--note", default="")
+    ap.add_argument("--parts", choices=("map", "thresholds"), default="map")
+    ap.add_argument("--figure", type=Path, default=None,
+                    help="thresholds: PNG of the Czech val operating point (first weights, first imgsz)")
+    ap.add_argument("--pred-cache", type=Path, default=None,
+                    help="thresholds: npz of the predictions, written once and reused (one weights, one imgsz)")
     a = ap.parse_args()
+    if a.parts == "thresholds":
+        _thresholds(a)
+        return
 
     from pavemap.detect.yolo import _import_ultralytics, load_detector, resolve_data_yaml
 
@@ -116,6 +128,41 @@ def main() -> None:
         res["models"][name] = entry
     res["load_avg_1m_end"] = round(os.getloadavg()[0], 2)
     write_results(a.results, res)
+
+
+def _thresholds(a: argparse.Namespace) -> None:
+    """The ``thresholds`` part: merge ``operating_point_imgsz<SZ>`` into the existing results file."""
+    import json
+
+    from detector_thresholds import operating_point, plot_operating_point
+    from pavemap.detect.yolo import _import_ultralytics, load_detector
+
+    _import_ultralytics()
+    taus = [round(0.05 * k, 2) for k in range(1, 13)]
+    res = json.loads(a.results.read_text()) if a.results.is_file() else {}
+    for spec in a.weights:
+        name, path = spec.split("=", 1)
+        model = load_detector(path)
+        for sz in a.imgsz:
+            run = {"commit": _commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry(),
+                   "torch_threads": __import__("torch").get_num_threads()}
+            t0 = time.perf_counter()
+            op = operating_point(model, a.data, sz, taus, a.pred_cache)
+            run |= {"load_avg_1m_end": round(os.getloadavg()[0], 2), "seconds": round(time.perf_counter() - t0)}
+            res[f"operating_point_imgsz{sz}"] = {
+                "what": "detector_bench.py --parts thresholds: predict once at conf 0.01 (NMS IoU 0.5, as the run), "
+                        "greedy matching IoU >= 0.5 highest conf first; precision/recall/F1 and Czech background "
+                        "boxes per frame at each tau (detections kept: conf >= tau)",
+                "model": name, "weights": path, "imgsz": sz, "note": a.note, "run": run, **op}
+            if a.figure is not None and (spec, sz) == (a.weights[0], a.imgsz[0]):
+                plot_operating_point(res[f"operating_point_imgsz{sz}"], "czech_val", a.figure)
+            for ds, d in op.items():
+                print(name, sz, ds, {k: v for k, v in d.items() if k.startswith("best")},
+                      flush=True)
+    from pavemap.io.atomic import atomic_write_json
+
+    atomic_write_json(a.results, res, indent=1)  # the file's own indent: a small diff
+    print(f"-> {a.results}")
 
 
 if __name__ == "__main__":
