@@ -11,7 +11,7 @@ Steps (:func:`sfm_poses`):
    jumps and teleports, the longest consistent part kept and every other frame named; steps off the car's
    heading are repaired onto it. Where COLMAP gives no usable path (none, too small, translations off the
    heading) the car's planar motion between consecutive frames replaces it (:mod:`pavemap.sfm.planar`); where
-   COLMAP's path needed repairs, both are scored by the road and the better kept.
+   COLMAP's path needed repairs or left keyframes unregistered, both are scored by the road and the better kept.
 3. Axes and a first scale: world z = up, x = the driving direction, origin = the first camera's foot point;
    the scale from SfM's sparse road points under the path (:mod:`pavemap.sfm.sparse`) when there are some,
    else provisional.
