@@ -59,8 +59,8 @@ def run(seq_dir: Path, preset: str, refine: bool) -> dict:
 
 def shifted(seq_dir: Path, preset: str) -> list[dict]:
     """The true surface shifted by each of OFFSETS, refined: the bias before and after."""
+    from pavemap.mesh.epoch import posed as _posed
     from pavemap.mesh.refine_run import refine_offset
-    from pavemap.mesh.train import _posed
     from refine_diag import setup
 
     fit, run_, zt, _ = setup(seq_dir, SETTINGS[preset]["mesh_preset"])
@@ -80,9 +80,9 @@ def shifted(seq_dir: Path, preset: str) -> list[dict]:
 def relief(seq_dir: Path, preset: str) -> dict:
     """The Gauss-Newton levels of :func:`pavemap.mesh.refine_solve.refine_heights` (offset and tilt, then control
     grids of 2 m and 1 m) on the closed-form surface (before the kerb refit): height error before and after."""
+    from pavemap.mesh.epoch import posed as _posed
     from pavemap.mesh.refine import pool_images
     from pavemap.mesh.refine_solve import refine_heights
-    from pavemap.mesh.train import _posed
     from refine_diag import setup
 
     fit, run_, zt, zc = setup(seq_dir, SETTINGS[preset]["mesh_preset"])

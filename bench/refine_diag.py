@@ -34,12 +34,13 @@ from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.io.truth import read_truth_height  # noqa: E402
 from pavemap.mesh import MeshConfig  # noqa: E402
 from pavemap.mesh.bake import bake_into  # noqa: E402
+from pavemap.mesh.epoch import posed as _posed  # noqa: E402
 from pavemap.mesh.geometry import add_point_depth, find_geometry  # noqa: E402
 from pavemap.mesh.init_surface import initial_heights  # noqa: E402
 from pavemap.mesh.render import view_rays  # noqa: E402
 from pavemap.mesh.setup import prepare  # noqa: E402
 from pavemap.mesh.step import _losses, forward_rays  # noqa: E402
-from pavemap.mesh.train import _make_fit, _posed, _Run  # noqa: E402
+from pavemap.mesh.train import _make_fit, _Run  # noqa: E402
 
 OFFSETS = (-0.10, -0.05, 0.0, 0.05, 0.10)
 

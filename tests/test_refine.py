@@ -143,3 +143,44 @@ def test_refinement_leaves_the_surface_when_the_consistency_has_no_minimum(world
     warned: list[str] = []
     rr.record(model, data.pool, data.pool.T, _cfg(), done, warned.append, {})
     assert warned and "no minimum" in warned[0]
+
+
+def test_footprints_match_the_ground_intersections_and_far_views_are_left_out():
+    """A pixel's road footprint (refine.footprints) against the ray-plane intersections of its corners, and
+    find_pairs keeping only the views whose footprint is at most FOOTPRINT_RATIO x the sharpest one's."""
+    from pavemap.mesh.refine import FOOTPRINT_RATIO, ViewStack, footprints
+
+    K = torch.tensor([[100.0, 0, 50], [0, 100.0, 30], [0, 0, 1]])
+    Rcw = torch.tensor([[0.0, -1, 0], [0, 0, -1], [1, 0, 0]])  # camera looking along +x, level, at 1.5 m
+    views = []
+    for cx in (0.0, -1.0, -12.0):  # two views near the points, one far behind them
+        c = torch.tensor([cx, 0.0, 1.5])
+        views.append(K @ torch.cat([Rcw, -(Rcw @ c)[:, None]], 1))
+    P = torch.stack(views)
+    pts = torch.tensor([[6.0, 0.3], [8.0, -0.5]])
+    z = torch.tensor([0.02, -0.03])
+    X = torch.cat([pts, z[:, None], torch.ones(2, 1)], 1)
+    p = torch.einsum("vij,pj->pvi", P, X)
+    fp = footprints(P, p[..., 2], z)
+    Minv = torch.linalg.inv(P[:, :, :3])
+    for i in range(2):
+        for v in range(3):
+            uv = p[i, v, :2] / p[i, v, 2]
+
+            def ground(du: float, dv: float, i=i, v=v, uv=uv) -> torch.Tensor:
+                d = Minv[v] @ torch.tensor([uv[0] + du, uv[1] + dv, 1.0])
+                c = -Minv[v] @ P[v, :, 3]
+                return (c + (z[i] - c[2]) / d[2] * d)[:2]
+
+            gu = (ground(0.01, 0) - ground(-0.01, 0)) / 0.02
+            gv = (ground(0, 0.01) - ground(0, -0.01)) / 0.02
+            fd = float((gu[0] * gv[1] - gu[1] * gv[0]).abs().sqrt())
+            assert abs(float(fp[i, v]) - fd) < 1e-3 * fd, (i, v, float(fp[i, v]), fd)
+    assert (fp[:, 2] > FOOTPRINT_RATIO * fp[:, 0]).all()  # the far view's pixels cover over 3x the road
+    H, W = 60, 100
+    st = ViewStack(torch.zeros(3, 3 * H * W), torch.ones(3 * H * W, dtype=torch.bool), P,
+                   torch.tensor([[0.0, 0, 1.5], [-1.0, 0, 1.5], [-12.0, 0, 1.5]]), H, W)
+    pt, view = find_pairs(st, pts, z, 80.0, 8)
+    assert sorted(view.tolist()) == [0, 0, 1, 1], view
+    pt, view = find_pairs(st, pts, z, 80.0, 8, footprint_ratio=0.0)  # 0: every view within reach
+    assert sorted(view.tolist()) == [0, 0, 1, 1, 2, 2], view

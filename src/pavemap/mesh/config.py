@@ -196,12 +196,12 @@ class MeshConfig:
     segment_min_step_m: float = 0.1
     # After the closed form (and the initial bake), move the surface by the global offset at which the training
     # views agree best on colour (pavemap.mesh.refine_run; docs/refine.md): a surface +-10 cm off ends within
-    # 0.4 cm (kitti-like) / 1.2 cm (nuScenes-like). Off: on top of the ground points it changed the height RMSE by
-    # -2 % / +8 % and the bias from 0.41 to 0.07 cm / -0.12 to 0.78 cm, at +5 / +8 s (bench/results/refine.json).
+    # 0.3 cm (kitti-like) / 0.4 cm (nuScenes-like). Off: on top of the ground points it changed the height RMSE by
+    # -3 % / +4 % and the bias from 0.49 to 0.23 cm / -0.17 to -0.63 cm, at +6 / +7 s (bench/results/refine.json).
     refine: bool = False
     # Report in metrics.json ("consistency") the global offset the views' consistency asks of the final surface,
-    # and warn beyond ``check_max_consistency_m``. Off by default: +2.5 / +3.7 s (a third / a sixth of stage 1),
-    # and it reads +1.7 cm on the nuScenes-like closed form (a bias of its own, docs/refine.md).
+    # and warn beyond ``check_max_consistency_m``. Off by default: +2.4 / +2.8 s on the bench drives; it reads
+    # -0.3 / -0.1 cm on their closed forms (docs/refine.md).
     consistency_check: bool = False
     check_max_consistency_m: float = 0.03
     max_bad_steps: int = 20  # consecutive non-finite steps before giving up
