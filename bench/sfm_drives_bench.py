@@ -87,7 +87,12 @@ def main() -> None:
     from pavemap.synth.trajectory import turn_path
 
     drives = {"turn_90deg": turn_path(), "stop_and_go": stop_and_go_path(), "straight": straight_path()}
-    presets = sys.argv[1:] or ["kitti-like", "nuscenes-like"]
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("presets", nargs="*", choices=["kitti-like", "nuscenes-like"], default=[],
+                    help="which presets' drives (default both)")
+    presets = ap.parse_args().presets or ["kitti-like", "nuscenes-like"]
     out: dict = {"what": __doc__.split("\n")[0], "commit": os.popen("git rev-parse --short HEAD").read().strip(),
                  "date": time.strftime("%Y-%m-%d"), "load_1min": round(os.getloadavg()[0], 2), "drives": {}}
     with tempfile.TemporaryDirectory(prefix="pavemap-sfm-drives-") as tmp:
