@@ -228,6 +228,10 @@ def stage1(clip: str) -> dict:
             "frames": sfm.get("images"), "registered": sfm.get("registered"), "method": sfm.get("method"),
             "other_parts": sfm.get("other_parts"), "max_accel_mps2": ck.get("max_accel_mps2"),
             "accel_unchecked": ck.get("accel_unchecked"), "import_seconds": round(t_import, 1),
+            # the camera's height over the road along the path, as the user's import measured it (vehicle masks)
+            "camera_heights_m": ck.get("heights_m"), "camera_height_range_m": ck.get("height_range_m"),
+            "camera_height_p10_p90_m": ck.get("height_p10_p90_m"), "heights_measured": ck.get("heights_measured"),
+            "camera_height_by_dense_points_m": (sfm.get("dense_scale") or {}).get("median"),
             "camera_height_stage1_m": m.get("camera_height_init"), "heldout_frames_every": 10,
             "psnr_heldout_db": m.get("psnr"), "heldout_textured_share": m.get("heldout_textured_share"),
             "psnr_heldout_all_covered_db": m.get("psnr_untextured_included"), "coverage": m.get("coverage"),
