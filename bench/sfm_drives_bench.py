@@ -56,6 +56,18 @@ def render(root: Path, preset: str, path: np.ndarray):  # noqa: ANN201
                       path=path.tolist(), hz=2.0)
 
 
+def step_yaw_error(T_est: np.ndarray, T_true: np.ndarray) -> dict:
+    """Each step's turn (the change of the camera's heading about the vertical) against the truth's, deg:
+    the path's rotations judged step by step, which a similarity fit of the centres can hide by cancelling."""
+    def turns(T: np.ndarray) -> np.ndarray:
+        fwd = T[:, :3, 2]
+        h = np.unwrap(np.arctan2(fwd[:, 1], fwd[:, 0]))
+        return np.degrees(np.diff(h))
+
+    err = np.abs(turns(T_est) - turns(T_true))
+    return {"mean_deg": round(float(err.mean()), 2), "max_deg": round(float(err.max()), 2)}
+
+
 def run_drive(truth, method: str) -> dict:  # noqa: ANN001
     from pavemap.sfm.pipeline import sfm_poses
     from pavemap.sfm.result import SfmRefusedError
@@ -76,10 +88,14 @@ def run_drive(truth, method: str) -> dict:  # noqa: ANN001
     k = res.registered
     shape, s = similarity(res.T_world_cam[k, :3, 3], gt[k], True)
     metric, _ = similarity(res.T_world_cam[k, :3, 3], gt[k], False)
+    T_true = np.stack([v.T_world_cam for v in views])
     return {"kept": int(k.sum()), "frames": len(k), "method_used": res.info.get("method"),
             "rmse_similarity_pct": round(shape, 3), "rmse_rigid_pct": round(metric, 3),
             "scale_error": round(1 / s - 1, 4), "scale_source": res.info.get("scale_source"),
             "interpolated": res.info.get("interpolated"), "camera_height_m": round(h, 3),
+            "step_turn_error": step_yaw_error(res.T_world_cam[k], T_true[k]),
+            "road_yaw": {x: (res.info.get("planar") or {}).get("road_yaw", {}).get(x)
+                         for x in ("searched", "corrected")},
             "seconds": round(dt, 1)}
 
 
@@ -90,9 +106,10 @@ def main() -> None:
     import argparse
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("presets", nargs="*", choices=["kitti-like", "nuscenes-like"], default=[],
-                    help="which presets' drives (default both)")
+    ap.add_argument("presets", nargs="*", help="kitti-like and/or nuscenes-like (default both)")
     presets = ap.parse_args().presets or ["kitti-like", "nuscenes-like"]
+    if bad := sorted(set(presets) - {"kitti-like", "nuscenes-like"}):
+        ap.error(f"unknown preset(s) {', '.join(bad)}: choose kitti-like, nuscenes-like")
     out: dict = {"what": __doc__.split("\n")[0], "commit": os.popen("git rev-parse --short HEAD").read().strip(),
                  "date": time.strftime("%Y-%m-%d"), "load_1min": round(os.getloadavg()[0], 2), "drives": {}}
     with tempfile.TemporaryDirectory(prefix="pavemap-sfm-drives-") as tmp:

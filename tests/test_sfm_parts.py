@@ -86,6 +86,31 @@ def test_planar_motion_alone_follows_the_turn(turn_drive):
     assert res.info["planar"]["reverse"] is False
 
 
+def test_the_road_puts_back_a_turn_read_short(turn_drive):
+    """A step of the turn with the destination camera turned 4 deg short of the truth (as the planar motion
+    reads a rolling car's turn): the road's homography prefers the true yaw and the offset puts it back; on the
+    true poses it asks for no change."""
+    from pavemap.io.folder import read_cameras_json
+    from pavemap.io.sequence import read_sequence
+    from pavemap.sfm.road_yaw import _rz, road_yaw_offsets
+
+    images, cameras, _ = turn_drive
+    cam = read_cameras_json(cameras)["CAM_FRONT"]
+    truth = read_sequence(images.parents[1])
+    T = np.stack([f.views["CAM_FRONT"].T_world_cam for f in truth.frames])
+    k = 8  # a 15 deg step in the middle of the turn
+    pair = [sorted(images.iterdir())[i] for i in (k, k + 1)]
+    short = T[k:k + 2].copy()
+    short[1, :3, :3] = _rz(np.radians(-4.0)) @ T[k + 1, :3, :3]
+    short[1, :3, 3] = T[k, :3, 3] + _rz(np.radians(-2.0)) @ (T[k + 1, :3, 3] - T[k, :3, 3])
+    offsets, records = road_yaw_offsets(pair, short, np.radians([11.0]), cam, MOUNT_HEIGHT)
+    assert np.degrees(offsets[0]) == pytest.approx(4.0, abs=1.01), records
+    offsets, records = road_yaw_offsets(pair, T[k:k + 2], np.radians([15.0]), cam, MOUNT_HEIGHT)
+    assert abs(np.degrees(offsets[0])) <= 1.01, records
+    offsets, records = road_yaw_offsets(pair, short, np.radians([1.0]), cam, MOUNT_HEIGHT)
+    assert records == [] and not offsets.any()  # a straight step keeps its yaw
+
+
 @pytest.mark.slow
 def test_grey_middle_third_is_imported_as_two_parts_with_the_grey_part_named(turn_drive, tmp_path):
     from pavemap.io.sequence import read_sequence

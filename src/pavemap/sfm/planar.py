@@ -256,25 +256,50 @@ def planar_motion(images: list[Path], camera: Camera, ego_mask: np.ndarray | Non
     motions = [pair_yaw(a @ R_cm.T, b @ R_cm.T, cfg, float(Ks[0, 0])) for a, b in rays]
     signs = np.array([m.sign for m in motions])
     reverse = bool((signs < 0).sum() > (signs > 0).sum())
-    T = np.tile(np.eye(4), (len(images), 1, 1))
-    psi, p = 0.0, np.zeros(3)
-    for i in range(len(images)):
-        T[i, :3, :3] = _rz(np.array(psi)) @ R_cm  # world <- car <- camera
-        T[i, :3, 3] = p
-        if i < len(motions):
-            th = motions[i].yaw if np.isfinite(motions[i].yaw) else 0.0
-            # unit steps: the road's sweep sizes them. Steps sized from the matches' parallax and the ground
-            # points under them were tried and measured worse on every synthetic drive (bench/sfm_drives_bench.py:
-            # kitti-like turn 0.88 -> 1.66 %, stop-and-go 0.91 -> 1.68 %, nuscenes-like turn 0.49 -> 2.51 %)
-            step = np.array([np.cos(psi + th / 2), np.sin(psi + th / 2), 0.0])
-            p = p + (-1.0 if reverse else 1.0) * step
-            psi += th
+    T = unit_path(np.array([m.yaw for m in motions]), R_cm, reverse)
     info = {"mount": mount, "reverse": reverse, "yaw_deg": [round(float(np.degrees(m.yaw)), 2) for m in motions],
             "inliers": [m.inliers for m in motions], "matches": [m.matches for m in motions],
             "sign_votes": signs.tolist()}
     return T, motions, info
 
 
+
+
+def unit_path(yaw: np.ndarray, R_cm: np.ndarray, reverse: bool) -> np.ndarray:
+    """(N, 4, 4) camera-to-world poses of a car on arcs: step i turns ``yaw[i]`` (N-1,) rad (NaN: 0) and is one
+    unit long along its chord, half-way between the headings; ``R_cm`` (3, 3) camera -> car; backwards along
+    the heading when ``reverse``."""
+    T = np.tile(np.eye(4), (len(yaw) + 1, 1, 1))
+    psi, p = 0.0, np.zeros(3)
+    for i in range(len(yaw) + 1):
+        T[i, :3, :3] = _rz(np.array(psi)) @ R_cm  # world <- car <- camera
+        T[i, :3, 3] = p
+        if i < len(yaw):
+            th = float(yaw[i]) if np.isfinite(yaw[i]) else 0.0
+            # unit steps: the road's sweep sizes them. Steps sized from the matches' parallax and the ground
+            # points under them were tried and measured worse on every synthetic drive (bench/sfm_drives_bench.py:
+            # kitti-like turn 0.88 -> 1.66 %, stop-and-go 0.91 -> 1.68 %, nuscenes-like turn 0.49 -> 2.51 %)
+            step = np.array([np.cos(psi + th / 2), np.sin(psi + th / 2), 0.0])
+            p = p + (-1.0 if reverse else 1.0) * step
+            psi += th
+    return T
+
+
+def _road_yaw(T: np.ndarray, pinfo: dict, images: list[Path], camera: Camera, camera_height: float,
+              ego_mask: np.ndarray | None) -> np.ndarray:
+    """The path ``T`` (K, 4, 4) with each turning step's yaw corrected on the road (:mod:`pavemap.sfm.road_yaw`);
+    ``pinfo["yaw_deg"]`` updated and ``pinfo["road_yaw"]`` says what was changed."""
+    from pavemap.sfm.road_yaw import road_yaw_offsets
+
+    yaw = np.radians(np.asarray(pinfo["yaw_deg"], float))
+    offsets, records = road_yaw_offsets(images, T, yaw, camera, camera_height, ego_mask)
+    pinfo["road_yaw"] = {"searched": len(records), "corrected": int((offsets != 0).sum()), "steps": records}
+    if not offsets.any():
+        return T
+    pinfo["yaw_deg_matches"] = pinfo["yaw_deg"]
+    yaw = yaw + offsets
+    pinfo["yaw_deg"] = [round(float(np.degrees(y)), 2) for y in yaw]
+    return unit_path(yaw, T[0, :3, :3], bool(pinfo["reverse"]))
 
 
 def planar_result(images: list[Path], keyframes: np.ndarray, camera: Camera, camera_height: float,
@@ -288,6 +313,7 @@ def planar_result(images: list[Path], keyframes: np.ndarray, camera: Camera, cam
     kf = np.flatnonzero(keyframes)
     T, motions, pinfo = planar_motion([images[i] for i in kf], camera, ego_mask, cfg,
                                       None if masks is None else [masks[i] for i in kf])
+    T = _road_yaw(T, pinfo, [images[i] for i in kf], camera, camera_height, ego_mask)
     info["planar"] = pinfo
     ok_step = np.array([np.isfinite(m.yaw) for m in motions], dtype=bool)
     # parts: runs of keyframes joined by measured steps
@@ -319,4 +345,4 @@ def planar_result(images: list[Path], keyframes: np.ndarray, camera: Camera, cam
     return SfmResult(out, keep, 1.0, 0, np.zeros((0, 3)), info, camera.K.astype(np.float64).copy())
 
 
-__all__ = ["PairMotion", "PlanarConfig", "mount_rotation", "pair_yaw", "planar_motion", "planar_result"]
+__all__ = ["PairMotion", "PlanarConfig", "mount_rotation", "pair_yaw", "planar_motion", "planar_result", "unit_path"]
