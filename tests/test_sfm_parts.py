@@ -92,7 +92,8 @@ def test_the_road_puts_back_a_turn_read_short(turn_drive):
     true poses it asks for no change."""
     from pavemap.io.folder import read_cameras_json
     from pavemap.io.sequence import read_sequence
-    from pavemap.sfm.road_yaw import _rz, road_yaw_offsets
+    from pavemap.sfm.road_yaw import road_yaw_offsets
+    from pavemap.sfm.steps import rot_z as _rz
 
     images, cameras, _ = turn_drive
     cam = read_cameras_json(cameras)["CAM_FRONT"]
@@ -389,7 +390,8 @@ def test_sfm_masks_what_moves(turn_drive, tmp_path):
 def test_arc_model_recovers_a_step_yaw_and_its_direction(yaw_deg, sign):
     """One step of a car on an arc, seen as matched bearings (car frame): the 1D search finds its yaw to a tenth
     of a degree and the depths say forwards or reversing."""
-    from pavemap.sfm.planar import PlanarConfig, _rz, pair_yaw
+    from pavemap.sfm.planar import PlanarConfig, pair_yaw
+    from pavemap.sfm.steps import rot_z as _rz
 
     rng = np.random.default_rng(3)
     th = np.radians(yaw_deg)

@@ -79,7 +79,7 @@ class Camera:
         each axis scaled by its true factor, :meth:`scale_xy`)."""
         sx, sy = self.scale_xy(scale)
         K = self.K.astype(np.float64).copy()
-        K[0, 0] *= sx
+        K[0, :2] *= sx  # focal length and skew
         K[1, 1] *= sy
         K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5

@@ -28,7 +28,7 @@ from pavemap.geometry.road_height import camera_heights, height_estimate
 from pavemap.geometry.triangulate import SurfaceCheck, check_height_field
 from pavemap.mesh.config import MeshConfig
 from pavemap.mesh.data import PixelPool
-from pavemap.mesh.ground_points import GroundPoints, estimate_camera_height
+from pavemap.mesh.ground_points import GroundPoints, estimate_camera_height, view_scale_xy
 from pavemap.mesh.init_surface import camera_height as searched_height
 from pavemap.mesh.relief import ReliefFit
 from pavemap.mesh.setup import MIN_POINTS, TrainData, Warn, frames_of
@@ -128,20 +128,17 @@ def _compare_prior(geo: Geometry, height: float, source: str, cfg: MeshConfig, n
              f"(x{height / cfg.camera_height:.2f}); using {geo.cam_h:.2f} m")
 
 
-def add_point_depth(pool: PixelPool, gp: GroundPoints, scale: float,
-                    cameras: dict[str, Camera] | None = None) -> PixelPool:
+def add_point_depth(pool: PixelPool, gp: GroundPoints, scale: float, cameras: dict[str, Camera]) -> PixelPool:
     """The pool with the ground points' observations as sparse depth: the pool pixel under each observation
     (at image ``scale``) gets its camera depth and the observation's exact sub-pixel position (the form of
     :func:`pavemap.mesh.data._depth_samples`). Pixels the pool does not hold (masked) are skipped.
     ``cameras``: the sequence's, for each axis's true factor (:meth:`Camera.scale_xy`: a rounded image size
-    makes it differ from ``scale``, and the pool's K uses it); without them ``scale`` on both axes."""
+    makes it differ from ``scale``, and the pool's K uses it)."""
     dev = pool.view.device
     index = {(k.frame, k.camera): i for i, k in enumerate(pool.keys)}
     vmap = np.array([index.get(tuple(k), -1) for k in gp.views], np.int64)
     pv = vmap[gp.obs_view] if len(gp.obs_view) else np.zeros(0, np.int64)
-    sxy = np.array([cameras[k[1]].scale_xy(scale) if cameras is not None else (scale, scale) for k in gp.views]
-                   + [(scale, scale)], np.float64)  # per view id (a last row: an empty gp.views)
-    uv = sxy[gp.obs_view] * (gp.obs_uv + 0.5) - 0.5 if len(gp.obs_view) else gp.obs_uv.astype(np.float64)
+    uv = view_scale_xy(cameras, gp.views, scale)[gp.obs_view] * (gp.obs_uv + 0.5) - 0.5
     ok = pv >= 0
     pv, uv, dep = pv[ok], uv[ok], gp.obs_depth[ok]
     W = int(pool.uv[:, 0].max().item()) + 2 if len(pool) else 1

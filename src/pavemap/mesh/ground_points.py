@@ -356,13 +356,19 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
     if cfg.neighbour_m > 0 and ok.any():
         ok[ok] &= agrees_with_neighbours(tri.points[ok], 1.0, cfg.neighbour_m)
     stats.update(tracks=int(n_tracks), t_total_s=round(time.perf_counter() - t0, 2))
-    sxy = np.array([seq.cameras[k[1]].scale_xy(cfg.scale) for k in keys], np.float64).reshape(-1, 2)
+    sxy = view_scale_xy(seq.cameras, keys, cfg.scale)
     gp = _assemble(keys, tri, ok, np.concatenate(road), track, vid, uv, semantic, cfg.scale, sxy, stats)
     if len(gp) < min_points:
         gp.observable = False
         gp.reason = (f"only {len(gp)} ground points triangulated (need {min_points}): too little baseline or "
                      "road texture to observe the geometry")
     return gp
+
+
+def view_scale_xy(cameras: dict[str, Camera], views: list, scale: float) -> np.ndarray:
+    """(V, 2) float64 each view's true (x, y) factor of an image resize by ``scale`` (:meth:`Camera.scale_xy`);
+    ``views``: (frame, camera name) keys."""
+    return np.array([cameras[k[1]].scale_xy(scale) for k in views], np.float64).reshape(-1, 2)
 
 
 def _empty(keys, semantic, reason, stats) -> GroundPoints:

@@ -32,6 +32,8 @@ import numpy as np
 
 from pavemap.errors import PavemapError
 from pavemap.sfm.result import SfmResult
+from pavemap.sfm.road_yaw import road_yaw_offsets
+from pavemap.sfm.steps import rot_z
 from pavemap.types import Camera
 
 log = logging.getLogger(__name__)
@@ -123,7 +125,7 @@ def _robust_cost(b1: np.ndarray, b2: np.ndarray, th: np.ndarray, tau: float) -> 
     """Truncated epipolar error of the arc model, (T,) summed over the matches, and the (T, M) inlier mask,
     for yaws ``th`` (T,) and car-frame bearings ``b1`` / ``b2`` (M, 3)."""
     t = np.stack([np.cos(th / 2), np.sin(th / 2), np.zeros_like(th)], -1)  # (T, 3)
-    rb2 = np.einsum("tij,mj->tmi", _rz(th), b2)  # (T, M, 3)
+    rb2 = np.einsum("tij,mj->tmi", rot_z(th), b2)  # (T, M, 3)
     r = np.abs(np.einsum("tmi,tmi->tm", rb2, np.cross(t[:, None, :], b1[None])))
     return np.minimum(r, tau).sum(1), r < tau
 
@@ -183,13 +185,6 @@ def mount_rotation(rays: list[tuple[np.ndarray, np.ndarray]], f_px: float, cfg: 
     return _mount(*best), info
 
 
-def _rz(theta: np.ndarray) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.zeros(np.shape(theta) + (3, 3))
-    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
-    return R
-
-
 def pair_yaw(b1: np.ndarray, b2: np.ndarray, cfg: PlanarConfig, f_px: float) -> PairMotion:
     """The yaw of one step from car-frame bearings ``b1`` / ``b2`` (M, 3) of matched points (1D search).
 
@@ -213,7 +208,7 @@ def pair_yaw(b1: np.ndarray, b2: np.ndarray, cfg: PlanarConfig, f_px: float) -> 
     th, inlier = float(fine[k]), inl[k]
     # which way along the chord: the triangulated depths are positive for one sign only
     t = np.array([np.cos(th / 2), np.sin(th / 2), 0.0])
-    rb2 = b2[inlier] @ _rz(np.array(th)).T
+    rb2 = b2[inlier] @ rot_z(np.array(th)).T
     votes = 0
     for s in (1.0, -1.0):
         # lambda1 b1 - lambda2 rb2 = s t, least squares per point
@@ -272,7 +267,7 @@ def unit_path(yaw: np.ndarray, R_cm: np.ndarray, reverse: bool) -> np.ndarray:
     T = np.tile(np.eye(4), (len(yaw) + 1, 1, 1))
     psi, p = 0.0, np.zeros(3)
     for i in range(len(yaw) + 1):
-        T[i, :3, :3] = _rz(np.array(psi)) @ R_cm  # world <- car <- camera
+        T[i, :3, :3] = rot_z(np.array(psi)) @ R_cm  # world <- car <- camera
         T[i, :3, 3] = p
         if i < len(yaw):
             th = float(yaw[i]) if np.isfinite(yaw[i]) else 0.0
@@ -289,8 +284,6 @@ def _road_yaw(T: np.ndarray, pinfo: dict, images: list[Path], camera: Camera, ca
               ego_mask: np.ndarray | None) -> np.ndarray:
     """The path ``T`` (K, 4, 4) with each turning step's yaw corrected on the road (:mod:`pavemap.sfm.road_yaw`);
     ``pinfo["yaw_deg"]`` updated and ``pinfo["road_yaw"]`` says what was changed."""
-    from pavemap.sfm.road_yaw import road_yaw_offsets
-
     yaw = np.radians(np.asarray(pinfo["yaw_deg"], float))
     offsets, records = road_yaw_offsets(images, T, yaw, camera, camera_height, ego_mask)
     pinfo["road_yaw"] = {"searched": len(records), "corrected": int((offsets != 0).sum()), "steps": records}
@@ -335,7 +328,7 @@ def planar_result(images: list[Path], keyframes: np.ndarray, camera: Camera, cam
     # world x along the drive, as SfM's paths have it (a reversing clip: along the way it went)
     travel = Tk[-1, :2, 3]
     a = -np.arctan2(travel[1], travel[0]) if np.linalg.norm(travel) > 0 else 0.0
-    Tk[:, :3, :] = _rz(np.array(a)) @ Tk[:, :3, :]
+    Tk[:, :3, :] = rot_z(np.array(a)) @ Tk[:, :3, :]
     Tk[:, 2, 3] = camera_height
     out[keep] = Tk
     info.update(method="planar motion", registered=int(keep.sum()), images=len(images), keyframes=int(len(kf)),

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pavemap.sfm.steps import StepConfig, StepEstimate, _Pair, _pairs, _pixel_rays, _road_roi, sweep_step
+from pavemap.sfm.steps import StepConfig, StepEstimate, _Pair, _pairs, _pixel_rays, _road_roi, rot_z, sweep_step
 from pavemap.types import Camera
 
 
@@ -36,16 +36,11 @@ class YawConfig:
     min_turn_deg: float = 2.0
 
 
-def _rz(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _turned(p: _Pair, rays: np.ndarray, h: float, d: float, cfg: StepConfig) -> StepEstimate:
     """The road's step sweep with the destination camera turned ``d`` rad about the vertical and the direction of
     travel by ``d / 2`` (the chord of an arc lies half-way between its headings)."""
-    R_dst = _rz(d) @ p.Tb[:3, :3]
-    direction = _rz(d / 2) @ p.direction
+    R_dst = rot_z(d) @ p.Tb[:3, :3]
+    direction = rot_z(d / 2) @ p.direction
     up = np.array([0.0, 0.0, 1.0])
     normal = up - (up @ direction) * direction
     normal /= np.linalg.norm(normal)

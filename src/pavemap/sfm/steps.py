@@ -64,6 +64,14 @@ class StepEstimate:
     score: np.ndarray = field(repr=False)
 
 
+def rot_z(theta: np.ndarray | float) -> np.ndarray:
+    """(..., 3, 3) rotations by ``theta`` (...,) rad about the world's vertical (z up; left positive)."""
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.zeros(np.shape(theta) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
 def _pixel_rays(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """(H, W, 3) float64 camera-frame rays K⁻¹ (u, v, 1) of every pixel centre of an image ``shape`` (H, W)."""
     H, W = shape
@@ -228,13 +236,8 @@ def _pairs(images: list[Path], T_world_cam: np.ndarray, camera: Camera, camera_h
             from pavemap.errors import PavemapError
 
             raise PavemapError(f"{p}: image is not {camera.width}x{camera.height}, the size of camera {camera.name}")
-    # K of the resized image, per axis: a rounded height scales rows slightly unlike columns (KITTI: 0.16 %)
-    sx, sy = Ws / camera.width, Hs / camera.height
-    K = camera.K.astype(np.float64).copy()
-    K[0] *= sx
-    K[1] *= sy
-    K[0, 2] += 0.5 * sx - 0.5  # pixel centres: (c + 0.5) * s - 0.5
-    K[1, 2] += 0.5 * sy - 0.5
+    # K of the resized image, per axis (a rounded height scales rows slightly unlike columns: KITTI 0.16 %)
+    K = camera.scaled(Ws / camera.width).K
     rays = _pixel_rays(K, (Hs, Ws))
     ego = None
     if ego_mask is not None and ego_mask.any():
@@ -331,4 +334,5 @@ def relength_path(C: np.ndarray, steps: list[StepEstimate]) -> tuple[np.ndarray,
     return out, factor
 
 
-__all__ = ["StepConfig", "StepEstimate", "relength_path", "road_scorer", "road_sideways", "road_steps", "sweep_step"]
+__all__ = ["StepConfig", "StepEstimate", "relength_path", "road_scorer", "road_sideways", "road_steps", "rot_z",
+           "sweep_step"]
