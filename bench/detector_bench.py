@@ -98,7 +98,7 @@ def main() -> None:
     ap.add_argument("--figure", type=Path, default=None,
                     help="thresholds: PNG of the Czech val operating point (first weights, first imgsz)")
     ap.add_argument("--pred-cache", type=Path, default=None,
-                    help="thresholds: npz of the predictions, written once and reused (one weights, one imgsz)")
+                    help="thresholds: npz of the predictions, written once and reused for the same weights and imgsz")
     a = ap.parse_args()
     if a.parts == "thresholds":
         _thresholds(a)
@@ -147,7 +147,7 @@ def _thresholds(a: argparse.Namespace) -> None:
             run = {"commit": _commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry(),
                    "torch_threads": __import__("torch").get_num_threads()}
             t0 = time.perf_counter()
-            op = operating_point(model, a.data, sz, taus, a.pred_cache)
+            op = operating_point(model, a.data, sz, taus, a.pred_cache, path)
             run |= {"load_avg_1m_end": round(os.getloadavg()[0], 2), "seconds": round(time.perf_counter() - t0)}
             res[f"operating_point_imgsz{sz}"] = {
                 "what": "detector_bench.py --parts thresholds: predict once at conf 0.01 (NMS IoU 0.5, as the run), "

@@ -182,9 +182,10 @@ def predict_images(model, paths: list[Path], label_of, imgsz: int, conf: float =
     return out
 
 
-def save_cache(path: Path, sets: dict[str, list[ImageResult]]) -> None:
-    """All predictions and truth in one npz (a rerun of the sweep or the figure needs no prediction)."""
-    arrs = {}
+def save_cache(path: Path, sets: dict[str, list[ImageResult]], tag: str) -> None:
+    """All predictions and truth in one npz (a rerun of the sweep or the figure needs no prediction), with ``tag``
+    (what predicted them: weights and input size)."""
+    arrs: dict[str, np.ndarray] = {"meta/tag": np.array(tag)}
     for ds, ims in sets.items():
         for k, im in enumerate(ims):
             for f in ("pred_xyxy", "pred_cls", "pred_conf", "true_xyxy", "true_cls"):
@@ -194,11 +195,16 @@ def save_cache(path: Path, sets: dict[str, list[ImageResult]]) -> None:
     tmp.replace(path)
 
 
-def load_cache(path: Path) -> dict[str, list[ImageResult]]:
-    """The inverse of :func:`save_cache`."""
+def load_cache(path: Path, tag: str) -> dict[str, list[ImageResult]] | None:
+    """The inverse of :func:`save_cache`; None when the file holds another weights' or input size's predictions."""
     z = np.load(path)
+    if "meta/tag" not in z.files or str(z["meta/tag"]) != tag:
+        print(f"{path}: predictions of another detector or input size; predicting again", flush=True)
+        return None
     by: dict[str, dict[tuple[int, str], dict]] = {}
     for key in z.files:
+        if key.startswith("meta/"):
+            continue
         ds, k, name, f = key.split("/")
         by.setdefault(ds, {}).setdefault((int(k), name), {})[f] = z[key]
     return {ds: [ImageResult(name, **d[(k, name)]) for k, name in sorted(d)] for ds, d in by.items()}
@@ -210,18 +216,21 @@ def czech_val_images(czech: Path) -> list[Path]:
     return [(czech / r).resolve() for r in rels]
 
 
-def operating_point(model, data: Path, imgsz: int, taus: list[float], cache: Path | None) -> dict:
-    """The whole part: predict (or read ``cache``), sweep both matchings on both datasets, background boxes."""
-    if cache is not None and cache.is_file():
-        sets = load_cache(cache)
-    else:
+def operating_point(model, data: Path, imgsz: int, taus: list[float], cache: Path | None, weights: str) -> dict:
+    """The whole part: predict (or read ``cache``, when it holds these ``weights``' predictions at ``imgsz``),
+    sweep both matchings on both datasets, background boxes."""
+    import hashlib
+
+    tag = f"{hashlib.sha256(Path(weights).read_bytes()).hexdigest()}@{imgsz}"
+    sets = load_cache(cache, tag) if cache is not None and cache.is_file() else None
+    if sets is None:
         cz, cn = data / "rdd2022-czech", data / "rdd2022-china-motorbike"
         sets = {"czech_val": predict_images(model, czech_val_images(cz), lambda p: cz / "labels" / f"{p.stem}.txt",
                                             imgsz),
                 "china_val": predict_images(model, sorted((cn / "images" / "val").glob("*.jpg")),
                                             lambda p: cn / "labels" / "val" / f"{p.stem}.txt", imgsz)}
         if cache is not None:
-            save_cache(cache, sets)
+            save_cache(cache, sets, tag)
     out: dict = {}
     for ds, ims in sets.items():
         aware, agnostic = sweep(ims, taus, True), sweep(ims, taus, False)
