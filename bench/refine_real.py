@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -84,9 +83,7 @@ def real_samples(data: Path, work: Path, names: tuple[str, ...] = tuple(SAMPLES)
         entry: dict = {"camera_height_known": SAMPLES[name][2]}
         for refine in (False, True):
             run_dir = work / "runs" / f"{name}-{'refined' if refine else 'closed'}"
-            run_dir.parent.mkdir(parents=True, exist_ok=True)
-            if run_dir.exists() and not (run_dir / "metrics.json").is_file():
-                shutil.rmtree(run_dir)  # a run this bench started and that did not finish
+            run_dir.parent.mkdir(parents=True, exist_ok=True)  # `run --overwrite` replaces only what pavemap wrote
             entry["refined" if refine else "closed_form"] = r = one_run(seq, run_dir, refine)
             print(name, "refined" if refine else "closed form", json.dumps({k: v for k, v in r.items()
                                                                             if k != "warnings"}), flush=True)
