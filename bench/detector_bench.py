@@ -15,6 +15,8 @@ with torch's threads as they are. Writes ``bench/results/detector.json``.
 ``--parts thresholds`` (instead of the default ``map``): the operating point of each weights file at each
 ``--imgsz`` (precision, recall, F1 and background boxes against tau 0.05..0.60, ``detector_thresholds.py``),
 added to the existing ``detector.json`` under ``operating_point_imgsz<SZ>`` (other keys kept).
+``--parts clips``: ``pavemap run`` on the shared nuScenes clips at the run's default threshold and at each ``--tau``
+(``detector_clips.py``), under ``real_clip_runs``.
 """
 
 from __future__ import annotations
@@ -88,20 +90,30 @@ def _speed(model, frames: list[Path], imgsz: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--weights", nargs="+", required=True, help="NAME=PATH of each detector")
+    ap.add_argument("--weights", nargs="+", default=[], help="NAME=PATH of each detector (map, thresholds)")
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     ap.add_argument("--imgsz", type=int, nargs="+", default=[640])
     ap.add_argument("--tau", type=float, nargs="+", default=[0.05, 0.10, 0.25, 0.40])
     ap.add_argument("--results", type=Path, default=Path(__file__).parent / "results" / "detector.json")
     ap.add_argument("--note", default="")
-    ap.add_argument("--parts", choices=("map", "thresholds"), default="map")
+    ap.add_argument("--merge", action="store_true",
+                    help="map: add the models (with --note as their 'about') to the existing results file, "
+                         "keeping its other models and parts, instead of writing a new file")
+    ap.add_argument("--parts", choices=("map", "thresholds", "clips"), default="map")
+    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "pavemap-bench" / "real",
+                    help="clips: where the clips are imported once and run (refine_bench.py's --data/real: shared)")
     ap.add_argument("--figure", type=Path, default=None,
                     help="thresholds: PNG of the Czech val operating point (first weights, first imgsz)")
     ap.add_argument("--pred-cache", type=Path, default=None,
                     help="thresholds: npz of the predictions, written once and reused for the same weights and imgsz")
     a = ap.parse_args()
+    if a.parts != "clips" and not a.weights:
+        ap.error("--weights NAME=PATH is needed for the map and thresholds parts")
     if a.parts == "thresholds":
         _thresholds(a)
+        return
+    if a.parts == "clips":
+        _clips(a)
         return
 
     from pavemap.detect.yolo import _import_ultralytics, load_detector, resolve_data_yaml
@@ -127,7 +139,23 @@ def main() -> None:
                   row["czech_background"], row["cpu_speed"]["median_ms"], flush=True)
         res["models"][name] = entry
     res["load_avg_1m_end"] = round(os.getloadavg()[0], 2)
+    if a.merge and a.results.is_file():
+        res = _merged(a.results, res)
     write_results(a.results, res)
+
+
+def _merged(path: Path, new: dict) -> dict:
+    """The results file at ``path`` with ``new``'s models added (each with the run's commit and the note as its
+    ``about``) and ``new``'s run appended to ``runs``; every other key of the file kept."""
+    import json
+
+    old = json.loads(path.read_text())
+    run = {k: new[k] for k in ("commit", "load_avg_1m", "machine", "date", "torch_threads", "note",
+                               "load_avg_1m_end") if k in new}
+    old.setdefault("runs", []).append(run)
+    for name, entry in new["models"].items():
+        old.setdefault("models", {})[name] = {**entry, "about": new.get("note", ""), "commit": new["commit"]}
+    return old
 
 
 def _thresholds(a: argparse.Namespace) -> None:
@@ -162,6 +190,26 @@ def _thresholds(a: argparse.Namespace) -> None:
     from pavemap.io.atomic import atomic_write_json
 
     atomic_write_json(a.results, res, indent=1)  # the file's own indent: a small diff
+    print(f"-> {a.results}")
+
+
+def _clips(a: argparse.Namespace) -> None:
+    """The ``clips`` part: merge ``real_clip_runs`` (the run's threshold on the shared nuScenes clips) into the
+    existing results file; ``--weights`` is not used (the runs use the shipped detector, as a user's would)."""
+    import json
+
+    from detector_clips import clip_runs
+    from pavemap.io.atomic import atomic_write_json
+
+    res = json.loads(a.results.read_text()) if a.results.is_file() else {}
+    run = {"commit": _commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry()}
+    t0 = time.perf_counter()
+    clips = clip_runs(a.data, a.work, [t for t in a.tau if t != 0])
+    run |= {"load_avg_1m_end": round(os.getloadavg()[0], 2), "seconds": round(time.perf_counter() - t0)}
+    res["real_clip_runs"] = {"what": "detector_bench.py --parts clips: `pavemap run` on the imported shared nuScenes "
+                                     "clips at the default threshold and at each --tau (no defect truth: counts)",
+                             "note": a.note, "run": run, **clips}
+    atomic_write_json(a.results, res, indent=1)
     print(f"-> {a.results}")
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from pavemap.detect.config import FilterConfig
+from pavemap.detect.config import PAPER_TAU_CONF, FilterConfig
 from pavemap.evaluate import evaluate
 from pavemap.fuse import FusionConfig
 from pavemap.io.atomic import atomic_write_json
@@ -60,7 +60,8 @@ def scene(work: Path, preset: str, frames: int, scale: float, seed: int = 0) -> 
 
 def configs(preset: str, **changes: object) -> tuple[FilterConfig, FusionConfig]:
     """The preset's filter and fusion settings, each change applied to the section that holds the field."""
-    filt, fus = FilterConfig.preset(preset), FusionConfig.preset(preset)
+    # sim detections: the paper's tau_conf for the preset, which the simulated detector is calibrated to
+    filt, fus = FilterConfig(tau_conf=PAPER_TAU_CONF[preset]), FusionConfig.preset(preset)
     for name, value in changes.items():
         target = filt if name in {f.name for f in dataclasses.fields(FilterConfig)} else fus
         if not hasattr(target, name):
@@ -76,7 +77,7 @@ def run_row(seq, dets, surface, cfg: FusionConfig, root: Path, mesh=None,  # noq
     """One filter + fusion run (filter: the default one unless given): paper metrics + GT scores + baseline."""
     from pavemap.pipeline import filter_and_fuse
 
-    filt = filt if filt is not None else FilterConfig()
+    filt = filt if filt is not None else FilterConfig(tau_conf=PAPER_TAU_CONF["nuscenes"])
     t = time.perf_counter()
     res = filter_and_fuse(seq, dets, surface, filt, cfg, mesh=mesh, progress=False)
     seconds = time.perf_counter() - t

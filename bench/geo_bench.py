@@ -19,6 +19,7 @@ origin (georeferencing alone, no fusion error), the median residual RMS of the f
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -40,6 +41,7 @@ def mapped_defects(root: Path, length: int, scale: float, seed: int
 
     Returns (sequence, fused xy (M, 2), their true xy (M, 2), every true defect's xy (T, 2), info)."""
     from pavemap.config import load_config
+    from pavemap.detect.config import PAPER_TAU_CONF
     from pavemap.io.sequence import read_detections, read_sequence
     from pavemap.io.truth import read_truth_height
     from pavemap.pipeline import filter_and_fuse
@@ -57,7 +59,8 @@ def mapped_defects(root: Path, length: int, scale: float, seed: int
     t_synth = time.perf_counter() - t
     cfg = load_config("kitti")
     t = time.perf_counter()
-    res = filter_and_fuse(seq, dets, read_truth_height(seq_dir), cfg.filter, cfg.fusion, progress=False)
+    filt = dataclasses.replace(cfg.filter, tau_conf=PAPER_TAU_CONF["kitti"])  # sim detections: the paper's
+    res = filter_and_fuse(seq, dets, read_truth_height(seq_dir), filt, cfg.fusion, progress=False)
     t_fuse = time.perf_counter() - t
     truth = np.array([d.polygon.centroid.coords[0] for d in load_truth_defects(seq_dir)])
     got, want = [], []

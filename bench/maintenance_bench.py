@@ -103,6 +103,7 @@ def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str, floo
     measures on the true surface without samples (the measuring method alone); ``floor_sweep``: the maintenance
     stage's ``floor_sweep`` (pothole floors from the images where the drive has no depth layer)."""
     import pavemap
+    from pavemap.detect.config import PAPER_TAU_CONF
     from pavemap.io.sequence import DETECTIONS_FILE, read_detections, read_sequence
     from pavemap.maintain import assess
     from pavemap.maintain.measure import MeasureConfig, measure_instances
@@ -118,7 +119,8 @@ def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str, floo
     seq = read_sequence(seq_dir)
     mesh = load_mesh(run_dir / "mesh")
     dets = read_detections(run_dir / DETECTIONS_FILE)
-    res = filter_and_fuse(seq, dets, mesh.surface, cfg.filter, cfg.fusion, mesh=mesh, progress=False)
+    filt = dataclasses.replace(cfg.filter, tau_conf=PAPER_TAU_CONF[cfg.preset])  # sim detections, as the run
+    res = filter_and_fuse(seq, dets, mesh.surface, filt, cfg.fusion, mesh=mesh, progress=False)
     mark_observed(res.instances, mesh)
     on_truth = copy.deepcopy(res.instances)
     t = time.perf_counter()
@@ -132,7 +134,7 @@ def map_and_measure(seq_dir: Path, run_dir: Path, preset: str, device: str, floo
     # Diagnostic: the same mesh and detections fused with fusion.association = footprint (each detection
     # on the vertices under its whole box, not a 0.3 m disk around the box centre's hit)
     fc = dataclasses.replace(cfg.fusion, association="footprint")
-    alt = filter_and_fuse(seq, dets, mesh.surface, cfg.filter, fc, mesh=mesh, progress=False)
+    alt = filter_and_fuse(seq, dets, mesh.surface, filt, fc, mesh=mesh, progress=False)
     assess(alt.instances, seq, mesh.surface, alt.instance_labels, mesh.observed, samples=mesh.samples)
     return res.instances, on_truth, alt.instances, {"run": round(run_s, 1), "measure": round(measure_s, 3)}
 

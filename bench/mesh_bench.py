@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from common import bench_parser, machine_entry, no_depth_copy, write_results  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
+from pavemap.memory import peak_rss_mb  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct, render_view  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,10 +44,6 @@ SETTINGS = {
     "nuscenes-like": {"mesh_preset": "nuscenes", "render_scale": 0.25},
     "kitti-like": {"mesh_preset": "kitti", "render_scale": 0.25},
 }
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def renderer_throughput(mesh, seq, device: str, scale: float = 0.5, views: int = 6) -> float:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pavemap.detect.config import FilterConfig
+from pavemap.detect.config import PAPER_TAU_CONF, FilterConfig
 from pavemap.detect.filter import filter_detections
 from pavemap.io.atomic import atomic_write_json
 from pavemap.io.sequence import read_detections, read_sequence
@@ -35,9 +35,9 @@ def score(root: Path, paint: float, seed: int) -> dict:
     src = np.array([t["source"] for t in truth])
     true = np.array([bool(t["true"]) for t in truth])
     t0 = time.perf_counter()
-    on = filter_detections(seq, dets, FilterConfig())
+    on = filter_detections(seq, dets, FilterConfig(tau_conf=PAPER_TAU_CONF["nuscenes"]))
     t_on = time.perf_counter() - t0
-    off = filter_detections(seq, dets, FilterConfig(tau_paint=1.0))
+    off = filter_detections(seq, dets, FilterConfig(tau_conf=PAPER_TAU_CONF["nuscenes"], tau_paint=1.0))
     kept_on = np.array([r["kept"] for r in on.records])
     kept_off = np.array([r["kept"] for r in off.records])
     by_paint = np.array([r["reason"] == "paint" for r in on.records])

@@ -30,9 +30,10 @@ OUT = ROOT / "bench" / "results" / "run.json"
 CONFIG_OF = {"nuscenes-like": "nuscenes", "kitti-like": "kitti"}
 
 CHILD = """
-import json, resource, sys, time
+import json, sys, time
 from pathlib import Path
 import pavemap
+from pavemap.memory import peak_rss_mb
 from pavemap.synth import synthesize
 preset, seq_dir, run_dir, device, depth = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4], sys.argv[5]
 t = time.perf_counter()
@@ -47,7 +48,7 @@ total = time.perf_counter() - t
 m = res.metrics
 print(json.dumps({
     "synth_seconds": synth_s, "run_seconds": total, "stage_seconds": m["seconds"],
-    "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    "peak_rss_mb": peak_rss_mb(),
     "defects": len(res.defects), "evaluation": res.evaluation,
     "mesh": {k: m.get("mesh", {}).get(k) for k in ("psnr", "sem_acc", "height_rmse", "height_rmse_seen",
                                                    "camera_height_init", "vertices")},

@@ -13,7 +13,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import shutil
 import subprocess
 import sys
@@ -27,6 +26,7 @@ TARGET_S = {"nuscenes-like": 60.0}
 
 
 def _one(preset: str, threads: int, device: str) -> dict:
+    from pavemap.memory import peak_rss_mb
     from pavemap.synth import synthesize
 
     out = WORK / f"synth-{preset}"
@@ -41,7 +41,7 @@ def _one(preset: str, threads: int, device: str) -> dict:
         "preset": preset, "frames": len(seq.frames), "cameras": len(seq.cameras), "views": views,
         "image_size": [cam.width, cam.height], "threads": threads, "device": device,
         "seconds": round(wall, 2), "cpu_seconds": round(cpu, 2), "seconds_per_view": round(wall / views, 3),
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
         "folder_mb": round(size / 2**20, 1), "load_avg_1m_start": round(load0, 2),
         "load_avg_1m_end": round(os.getloadavg()[0], 2),
     }

@@ -22,9 +22,10 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 #: The layers from the ground up: a module may import its own layer and the layers below it, never above.
 #: A module belongs to the longest prefix listed here. Modules in one layer may import each other (no circles).
 LAYERS: tuple[tuple[str, ...], ...] = (
-    # 0 ground: plain data types, errors, colours, the version, the device and cache helpers, typed config values
+    # 0 ground: plain data types, errors, colours, the version, the device, cache and memory helpers, typed values
     ("pavemap.types", "pavemap.errors", "pavemap.palette", "pavemap.version", "pavemap.device",
-     "pavemap.shutdown", "pavemap.user_cache", "pavemap.assets", "pavemap.weights", "pavemap.typed_values"),
+     "pavemap.shutdown", "pavemap.user_cache", "pavemap.assets", "pavemap.weights", "pavemap.typed_values",
+     "pavemap.memory"),
     ("pavemap.geometry",),  # 1 cameras, rays, grids, height fields, patch matching: numbers in, numbers out
     ("pavemap.io",),  # 2 the sequence folder and the files pavemap reads and writes; the importers of real data
     ("pavemap.geo",),  # 3 georeferencing: GPS fits, local tangent plane, CRS, coverage

@@ -87,7 +87,7 @@ def test_set_overrides_reach_config_yaml_and_rig_picks_kitti(tiny_seq, tmp_path,
     assert written["filter"]["tau_road"] == 0.6 and written["mesh"]["epochs"] == 3
     assert written["fusion"]["association"] == "ray" and written["output"]["sweep_tau_conf"] == [0.1, 0.3]
     assert written["device"] == "cpu"
-    assert written["filter"]["tau_conf"] == pytest.approx(0.10)  # the kitti preset's threshold kept
+    assert written["filter"]["tau_conf"] is None  # the preset's: the detector's operating point, which the run resolves
     assert "detector: sim" in r.output  # auto resolved: the tiny drive carries synthetic truth
 
 

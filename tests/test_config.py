@@ -19,15 +19,18 @@ from pavemap.config import (
     preset_config,
     preset_for,
 )
+from pavemap.detect.backends import resolve_tau_conf
 from pavemap.errors import PavemapError
 
 
 def test_presets_carry_paper_parameters():
     nus = preset_config("nuscenes")
     kit = preset_config("kitti")
-    # SPEC §2: confidence threshold 0.05 nuScenes / 0.10 KITTI; τ_road 0.5; α 0.3 (Table 2).
-    assert nus.filter.tau_conf == pytest.approx(0.05)
-    assert kit.filter.tau_conf == pytest.approx(0.10)
+    # SPEC §2: confidence threshold 0.05 nuScenes / 0.10 KITTI; τ_road 0.5; α 0.3 (Table 2). The threshold is
+    # the detector's: none in the preset, the paper's for the simulated detector (tests/test_tau_conf.py)
+    assert nus.filter.tau_conf is None and kit.filter.tau_conf is None
+    assert resolve_tau_conf(nus.filter.tau_conf, nus.preset, None)[0] == pytest.approx(0.05)
+    assert resolve_tau_conf(kit.filter.tau_conf, kit.preset, None)[0] == pytest.approx(0.10)
     assert nus.filter.tau_road == pytest.approx(0.5)
     assert nus.fusion.alpha == pytest.approx(0.3)
     assert nus.mesh.resolution == pytest.approx(0.1)
@@ -41,7 +44,7 @@ def test_yaml_overrides_and_roundtrip(tmp_path: Path):
     cfg = load_config(f)
     assert cfg.preset == "kitti" and cfg.device == "cpu"
     assert cfg.filter.tau_road == pytest.approx(0.7)
-    assert cfg.filter.tau_conf == pytest.approx(0.10)  # kept from the kitti preset
+    assert cfg.filter.tau_conf is None  # kept from the kitti preset: the detector's operating point
     assert cfg.mesh.epochs == 2
     # the dumped config loads back to the same values
     g = tmp_path / "d.yaml"
@@ -147,3 +150,28 @@ def test_preset_for_rig():
             self.cameras = {f"cam{i}": None for i in range(n)}
 
     assert preset_for(_Seq(1))[0] == "kitti" and preset_for(_Seq(6))[0] == "nuscenes"
+
+
+def test_stage1_runs_with_the_configured_blas_threads(monkeypatch):
+    """mesh.blas_threads: 1 (the default) holds numpy's and scipy's BLAS pools at one thread during stage 1 and
+    gives them back after; 0 leaves them as they are."""
+    import numpy  # noqa: F401 - its BLAS pool loaded
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import pavemap.mesh.train as train
+    from pavemap.mesh.config import MeshConfig
+
+    def pools() -> dict[str, int]:
+        return {i["filepath"]: i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    seen = []
+    monkeypatch.setattr(train, "_reconstruct", lambda *a, **k: seen.append(pools()))
+    with threadpool_limits(limits=2, user_api="blas"):
+        outer = pools()  # 2 each, or 1 for a pool built single-threaded
+        train.reconstruct_piece(None, None, MeshConfig())  # type: ignore[arg-type]
+        train.reconstruct_piece(None, None, MeshConfig(blas_threads=0))  # type: ignore[arg-type]
+        after = pools()
+    assert 2 in outer.values()
+    assert set(seen[0].values()) == {1} and seen[1] == outer and after == outer
+    with pytest.raises(PavemapError, match="blas_threads"):
+        MeshConfig(blas_threads=-1)

@@ -119,8 +119,8 @@ def test_paint_false_positives_are_filtered(tmp_path):
     paint = np.array([t["source"] == "paint" for t in truth])
     true = np.array([t["true"] for t in truth])
     assert paint.sum() >= 3
-    with_rule = filter_detections(seq, dets, FilterConfig())
-    without = filter_detections(seq, dets, FilterConfig(tau_paint=1.0))
+    with_rule = filter_detections(seq, dets, FilterConfig(tau_conf=0.05))
+    without = filter_detections(seq, dets, FilterConfig(tau_conf=0.05, tau_paint=1.0))
     kept = np.array([r["kept"] for r in with_rule.records])
     kept_off = np.array([r["kept"] for r in without.records])
     assert kept_off[paint].mean() > 0.8  # the road filter alone keeps paint boxes (paint is road)
@@ -131,7 +131,7 @@ def test_paint_false_positives_are_filtered(tmp_path):
     with pytest.raises(PavemapError, match="paint_fp"):
         DetectorConfig(paint_fp=0.7)
     with pytest.raises(PavemapError, match="tau_paint"):
-        FilterConfig(tau_paint=0.0)
+        FilterConfig(tau_conf=0.05, tau_paint=0.0)
 
 
 def test_detections_on_the_ego_mask_are_dropped(tmp_path):
@@ -156,7 +156,7 @@ def test_detections_on_the_ego_mask_are_dropped(tmp_path):
     seq = read_sequence(tmp_path)
     dets = [Detection(0, "front", (5.0, 25.0, 20.0, 29.0), 0, 0.9),
             Detection(0, "front", (5.0, 5.0, 20.0, 15.0), 0, 0.9)]
-    res = filter_detections(seq, dets, FilterConfig())
+    res = filter_detections(seq, dets, FilterConfig(tau_conf=0.05))
     assert [r["reason"] for r in res.records] == ["ego", "kept"]
 
 

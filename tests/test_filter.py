@@ -139,7 +139,7 @@ def test_mesh_and_both_masks(tmp_path, monkeypatch) -> None:  # noqa: ANN001
     mesh = _FakeMesh()
     res = {}
     for mode in ("frame", "mesh", "both"):
-        recs = filter_detections(seq, [car, high, low], FilterConfig(mask=mode), mesh=mesh).records
+        recs = filter_detections(seq, [car, high, low], FilterConfig(tau_conf=0.05, mask=mode), mesh=mesh).records
         res[mode] = [r["kept"] for r in recs]
     # The mesh mask shows road under the parked car (SPEC §5); the frame mask sees the car.
     assert res["frame"] == [False, False, True]
@@ -150,7 +150,8 @@ def test_mesh_and_both_masks(tmp_path, monkeypatch) -> None:  # noqa: ANN001
 def test_mesh_mode_without_mesh_falls_back(tmp_path, caplog) -> None:  # noqa: ANN001
     seq = make_seq(tmp_path, [_road_bottom()])
     with caplog.at_level(logging.WARNING, logger="pavemap"):
-        res = filter_detections(seq, [Detection(0, "cam", (10, 5, 30, 25), 0, 0.5)], FilterConfig(mask="mesh"))
+        res = filter_detections(seq, [Detection(0, "cam", (10, 5, 30, 25), 0, 0.5)],
+                                FilterConfig(tau_conf=0.05, mask="mesh"))
     recs = res.records
     assert res.mask_used == "frame" and res.mask_fallbacks == {"no_mesh": 1}
     assert recs[0]["reason"] == "off_road" and "needs a mesh" in caplog.text
@@ -167,7 +168,7 @@ def test_yolo_txt_folder(tmp_path) -> None:  # noqa: ANN001
     assert len(dets) == 3
     assert dets[0].box == pytest.approx((30.0, 15.0, 50.0, 45.0)) and dets[0].conf == 0.8
     assert dets[1].conf == 1.0 and dets[1].cls == 3 and dets[2].frame == 1
-    recs = filter_detections(seq, dets, FilterConfig()).records
+    recs = filter_detections(seq, dets, FilterConfig(tau_conf=0.05)).records
     assert recs[2]["reason"] == "unknown_cls"
 
 

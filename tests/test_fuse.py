@@ -76,7 +76,7 @@ def run_fusion(seq: Sequence, dets: list[Detection], surface: HeightField, cfg: 
     """Stage 2's filter, then stage 3, chained as the pipeline does."""
     from pavemap.pipeline import filter_and_fuse
 
-    return filter_and_fuse(seq, dets, surface, filt or FilterConfig(), cfg or FusionConfig(), mesh=mesh,
+    return filter_and_fuse(seq, dets, surface, filt or FilterConfig(tau_conf=0.05), cfg or FusionConfig(), mesh=mesh,
                            progress=False)
 
 
@@ -303,7 +303,7 @@ def test_mesh_mask_from_surface_semantics(plane: HeightField) -> None:
     on = Detection(0, "front", box_of(seq, 0, (9.0, 0.5)), 0, 0.9)
     off = Detection(0, "front", box_of(seq, 0, (9.0, -3.5)), 0, 0.9)
     res = run_fusion(seq, [on, off], plane, FusionConfig(n_min=1, min_instance_obs=1), mesh=mesh,
-                     filt=FilterConfig(mask="mesh"))
+                     filt=FilterConfig(tau_conf=0.05, mask="mesh"))
     assert [r["reason"] for r in res.detections] == ["kept", "off_road"]
     assert res.detections[0]["r_road"] == 1.0 and res.detections[1]["r_road"] == 0.0
 

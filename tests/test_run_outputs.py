@@ -20,7 +20,7 @@ import pavemap
 from pavemap.cli import app
 from pavemap.detect import backends
 from pavemap.detect.backends import resolve_backend
-from pavemap.detect.config import DetectorConfig, FilterConfig
+from pavemap.detect.config import PAPER_TAU_CONF, DetectorConfig
 from pavemap.errors import PavemapError
 from pavemap.export.geojson import PROPERTY_SCHEMA
 from pavemap.export.tables import CSV_COLUMNS, GEO_COLUMNS
@@ -198,6 +198,6 @@ def test_run_without_config_uses_the_rig_preset(tiny_seq, tmp_path, monkeypatch,
     monkeypatch.setattr(pipeline, "_run", fake_run)
     with caplog.at_level("INFO", logger="pavemap"):
         res = pavemap.run(tiny_seq, None, tmp_path / "run", progress=False)
-    assert seen["cfg"].preset == "kitti" and seen["cfg"].filter.tau_conf == FilterConfig.preset("kitti").tau_conf
+    assert seen["cfg"].preset == "kitti" and seen["cfg"].filter.tau_conf == PAPER_TAU_CONF["kitti"]  # sim: the paper's
     assert res.preset.startswith("kitti") and "camera" in res.preset
     assert "preset kitti" in caplog.text and "detector sim" in caplog.text

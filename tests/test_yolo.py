@@ -189,6 +189,10 @@ def test_detect_sequence_boxes_in_original_pixels(det_weights, tmp_path):
     assert {r["model_cls"] for r in recs} <= set(expect)
     assert all(r["cls"] == expect[r["model_cls"]] for r in recs)
     assert len({r["model_cls"] for r in recs}) >= 2  # the biased random head emits several classes
+    from pavemap.detect.sources import detections_model
+    from pavemap.weights.registry import sha256_of
+
+    assert detections_model(out) == sha256_of(det_weights)  # each line names its model (its operating point)
 
 
 def test_detect_sequence_class_map_override(det_weights, tmp_path):

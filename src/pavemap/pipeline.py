@@ -204,7 +204,7 @@ def run(
     >>> result = pavemap.run("my_seq", pavemap.load_config("nuscenes"), "runs/my_seq")  # doctest: +SKIP
     """
     from pavemap.config import preset_config, preset_for
-    from pavemap.detect.backends import resolve_backend
+    from pavemap.detect.backends import detector_model, resolve_backend, resolved_filter
     from pavemap.device import resolve_device
 
     if not isinstance(seq, Sequence):
@@ -224,6 +224,8 @@ def run(
         from pavemap.detect.sources import load_detections
 
         load_detections(detector.file or seq.root / DETECTIONS_FILE, seq)  # type: ignore[operator]
+    filt, tau_note = resolved_filter(cfg.filter, cfg.preset, detector_model(detector, seq))  # its operating point
+    cfg, why = dataclasses.replace(cfg, filter=filt), f"{why}; {tau_note}"
     from pavemap.io.lock import locked
     from pavemap.io.owned import check_outside_inputs
     from pavemap.preflight import check_frames, check_weights

@@ -101,6 +101,11 @@ def register(app: typer.Typer) -> None:
         if not det_path.exists():
             raise PavemapError(f"{det_path}: no detections (run `pavemap detect {seq}` or give --detections)")
         dets = load_detections(det_path, s)
+        from pavemap.detect.backends import resolved_filter
+        from pavemap.detect.sources import detections_model
+
+        rc.filter, said = resolved_filter(rc.filter, rc.preset, detections_model(det_path))  # the boxes' model's
+        typer.echo(said, err=True)
         source = str(seq.resolve())
         with writing(out, "fuse", overwrite, inputs=(seq, mesh, detections), info={"source": source},
                      same=lambda o: o.get("source") == source, legacy=legacy_run, early=False) as folder:

@@ -118,13 +118,17 @@ def resolve_config(seq: Sequence | None, config: str | None, sets: list[str] | N
     return cfg
 
 
-def announce_detector(cfg: RunConfig, seq: Sequence) -> DetectorConfig:
-    """Say which detector runs and why (``auto`` resolved); a missing input fails here, before any stage.
+def announce_detector(cfg: RunConfig, seq: Sequence, threshold: bool = False) -> DetectorConfig:
+    """Say which detector runs and why (``auto`` resolved), and with ``threshold`` the confidence threshold the
+    run will use (the detector's operating point unless the config gives one); a missing input fails here,
+    before any stage.
 
     Returns the detector section with the concrete backend (and the yolo weights' path).
     """
-    from pavemap.detect.backends import resolve_backend
+    from pavemap.detect.backends import detector_model, resolve_backend, resolved_filter
 
     det, why = resolve_backend(cfg.detector, seq)
     typer.echo(f"detector: {det.backend} ({why})", err=True)
+    if threshold:
+        typer.echo(resolved_filter(cfg.filter, cfg.preset, detector_model(det, seq))[1], err=True)
     return det

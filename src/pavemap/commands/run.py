@@ -48,7 +48,7 @@ def register(app: typer.Typer) -> None:
         cfg = opt.resolve_config(s, config, sets, {**opt.detector_shortcuts(detector, weights, detections),
                                                 "device": device, "mesh.epochs": epochs,
                                                 "output.crs": crs, "skip_bad_frames": skip_bad_frames or None})
-        opt.announce_detector(cfg, s)
+        opt.announce_detector(cfg, s, threshold=True)
         result = run_pipeline(s, cfg, out, overwrite=overwrite, segmenter=segmenter,
                               segmenter_weights=segmenter_weights)
         report(result)
@@ -79,7 +79,7 @@ def register(app: typer.Typer) -> None:
         s = read_sequence(seq_dir)
         cfg = opt.resolve_config(s, "nuscenes", sets, {"device": device, "detector.seed": seed,
                                                    "mesh.render_scale": DEMO_RENDER_SCALE})
-        opt.announce_detector(cfg, s)
+        opt.announce_detector(cfg, s, threshold=True)
         result = run_pipeline(s, cfg, out / "run", overwrite=True)
         took = time.perf_counter() - t0
         typer.echo("")

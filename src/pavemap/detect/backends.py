@@ -10,10 +10,11 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from pavemap.detect.config import DetectorConfig
+from pavemap.detect.config import PAPER_TAU_CONF, DetectorConfig, FilterConfig
 from pavemap.errors import PavemapError
+from pavemap.io.sequence import DETECTIONS_FILE
 from pavemap.types import Sequence
-from pavemap.weights.registry import SHIPPED_WEIGHTS, candidates, known
+from pavemap.weights.registry import SHIPPED_WEIGHTS, by_sha256, candidates, known, sha256_of
 
 TRUTH_DEFECTS = "truth/defects.geojson"
 
@@ -81,4 +82,48 @@ def resolve_backend(config: DetectorConfig, seq: Sequence) -> tuple[DetectorConf
     return dataclasses.replace(config, backend=backend, weights=weights), why
 
 
-__all__ = ["SHIPPED_WEIGHTS", "has_truth", "resolve_backend", "shipped_weights", "weights_candidates"]
+def detector_model(detector: DetectorConfig, seq: Sequence) -> str | None:
+    """The sha256 of the model behind a resolved detector's boxes, or None (the simulated detector; a detections
+    file that does not name its model): yolo weights are hashed, a file gives its lines' ``model``."""
+    if detector.backend == "yolo" and detector.weights is not None:
+        return sha256_of(detector.weights)
+    if detector.backend == "file":
+        from pavemap.detect.sources import detections_model
+
+        path = Path(detector.file) if detector.file else (seq.root / DETECTIONS_FILE if seq.root else None)
+        return detections_model(path) if path is not None else None
+    return None
+
+
+def resolve_tau_conf(tau_conf: float | None, preset: str, model_sha256: str | None) -> tuple[float, str]:
+    """The confidence threshold of a run, and one line saying why.
+
+    A number given in the config wins. Else (None) the detector's operating point: the measured one of weights
+    the registry knows by hash (:attr:`pavemap.weights.registry.KnownWeights.tau_conf`), else the paper's for
+    the preset (:data:`pavemap.detect.config.PAPER_TAU_CONF`: the simulated detector is calibrated to it; other
+    weights have not been measured by pavemap).
+    """
+    if tau_conf is not None:
+        return float(tau_conf), "set in the config"
+    if preset not in PAPER_TAU_CONF:
+        raise PavemapError(f"unknown preset {preset!r}; choose one of {', '.join(PAPER_TAU_CONF)}")
+    entry = by_sha256(model_sha256) if model_sha256 else None
+    if entry is not None and entry.tau_conf is not None:
+        return entry.tau_conf, (f"the measured operating point of {entry.file} (docs/guide/detector.md; "
+                                "--set filter.tau_conf=... to change)")
+    paper = PAPER_TAU_CONF[preset]
+    if model_sha256 is None:
+        return paper, f"the paper's for the {preset} preset"
+    return paper, (f"the paper's for the {preset} preset: these weights' operating point is not measured "
+                   "(bench/detector_thresholds.py measures it; --set filter.tau_conf=... to change)")
+
+
+def resolved_filter(filter_config: FilterConfig, preset: str, model_sha256: str | None) -> tuple[FilterConfig, str]:
+    """A copy of ``filter_config`` with ``tau_conf`` resolved for the model behind the boxes (:func:`detector_model`;
+    None for the simulated detector), and one line saying which threshold and why."""
+    tau, why = resolve_tau_conf(filter_config.tau_conf, preset, model_sha256)
+    return dataclasses.replace(filter_config, tau_conf=tau), f"filter.tau_conf {tau:g} ({why})"
+
+
+__all__ = ["SHIPPED_WEIGHTS", "detector_model", "has_truth", "resolve_backend", "resolve_tau_conf", "resolved_filter",
+           "shipped_weights", "weights_candidates"]

@@ -16,6 +16,9 @@ Backend = Literal["auto", "sim", "yolo", "file"]
 MaskSource = Literal["frame", "mesh", "both"]
 BACKENDS: tuple[str, ...] = ("auto", "sim", "yolo", "file")
 MASKS: tuple[str, ...] = ("frame", "mesh", "both")
+#: paper Table 2's τ_conf per preset: the simulated detector is calibrated to them, and a detector whose operating
+#: point pavemap has not measured gets them
+PAPER_TAU_CONF: dict[str, float] = {"nuscenes": 0.05, "kitti": 0.10}
 
 
 @dataclass
@@ -71,7 +74,9 @@ class DetectorConfig:
 class FilterConfig:
     """The road filter of stage 2 (SPEC §2).
 
-    - ``tau_conf``: keep detections with ``conf >= tau_conf`` (paper 0.05 nuScenes / 0.10 KITTI).
+    - ``tau_conf``: keep ``conf >= tau_conf``; none = the detector's operating point (shipped 0.20, sim 0.05 / 0.10):
+      :func:`pavemap.detect.backends.resolve_tau_conf` gives the measured one of weights the registry knows, else
+      the paper's for the preset (:data:`PAPER_TAU_CONF`), which the simulated detector is calibrated to.
     - ``tau_road``: keep detections whose box road share ``R_road > tau_road`` (paper 0.5).
     - ``mask``: road mask for ``R_road``: ``frame`` (the view's semantic PNG), ``mesh`` (the road
       mesh's semantics seen through the box), ``both`` (both ratios must pass).
@@ -82,7 +87,7 @@ class FilterConfig:
       :mod:`pavemap.detect.paint`). 1 turns the rule off.
     """
 
-    tau_conf: float = 0.05
+    tau_conf: float | None = None
     tau_road: float = 0.5
     mask: MaskSource = "frame"
     mesh_mask_scale: float = 0.25
@@ -99,8 +104,9 @@ class FilterConfig:
             raise PavemapError(f"filter.tau_paint must be in (0, 1], got {self.tau_paint!r}")
         if self.mask not in MASKS:
             raise PavemapError(f"filter.mask must be one of {', '.join(MASKS)}, got {self.mask!r}")
-        if not 0.0 <= self.tau_conf <= 1.0:
-            raise PavemapError(f"filter.tau_conf must be in [0, 1], got {self.tau_conf}")
+        if self.tau_conf is not None and not (isinstance(self.tau_conf, int | float) and 0.0 <= self.tau_conf <= 1.0):
+            raise PavemapError(f"filter.tau_conf must be in [0, 1] or none (the detector's operating point), "
+                               f"got {self.tau_conf}")
         if not 0.0 <= self.tau_road < 1.0:
             raise PavemapError(f"filter.tau_road must be in [0, 1), got {self.tau_road}")
         if not (math.isfinite(self.mesh_mask_scale) and 0.0 < self.mesh_mask_scale <= 1.0):
@@ -110,12 +116,11 @@ class FilterConfig:
 
     @classmethod
     def preset(cls, name: str) -> FilterConfig:
-        """Paper Table 2: τ_conf 0.05 for nuscenes, 0.10 for kitti (τ_road 0.5 for both)."""
-        if name == "nuscenes":
-            return cls(tau_conf=0.05)
-        if name == "kitti":
-            return cls(tau_conf=0.10)
-        raise PavemapError(f"unknown filter preset {name!r}; choose nuscenes or kitti")
+        """The filter of a preset: τ_road 0.5 for both (paper Table 2); τ_conf is left to the detector (None),
+        whose default for the paper's detector is the preset's :data:`PAPER_TAU_CONF`."""
+        if name not in PAPER_TAU_CONF:
+            raise PavemapError(f"unknown filter preset {name!r}; choose nuscenes or kitti")
+        return cls()
 
 
-__all__ = ["BACKENDS", "MASKS", "Backend", "DetectorConfig", "FilterConfig", "MaskSource"]
+__all__ = ["BACKENDS", "MASKS", "PAPER_TAU_CONF", "Backend", "DetectorConfig", "FilterConfig", "MaskSource"]

@@ -19,6 +19,7 @@ import numpy as np
 
 from pavemap.detect.boxes import box_ratio
 from pavemap.detect.config import FilterConfig
+from pavemap.errors import PavemapError
 from pavemap.io.sequence import load_semantics
 from pavemap.types import NUM_DEFECT_CLASSES, Detection, Sequence
 
@@ -228,6 +229,9 @@ def filter_detections(
     view without semantics. See :class:`FilterResult` for what comes back.
     """
     config.validate()
+    if config.tau_conf is None:
+        raise PavemapError("filter.tau_conf is none (the detector's operating point) and was not resolved: call "
+                           "pavemap.detect.backends.resolved_filter first, or give a number")
     t0 = time.perf_counter()
     clean, reasons = sanitize(seq, detections)
     _warn_invalid(detections, reasons)

@@ -79,6 +79,30 @@ def read_yolo_dir(root: str | os.PathLike, seq: Sequence) -> list[Detection]:
     return dets
 
 
+def detections_model(path: str | os.PathLike) -> str | None:
+    """The ``model`` (sha256 of the weights) every line of a detections JSONL names, or None: YOLO txt files, an
+    empty file, lines without it or naming different models (``pavemap detect`` writes it; other tools may not)."""
+    import json
+
+    path = Path(path)
+    if not path.is_file() or path.suffix == ".txt":
+        return None
+    models: set[str | None] = set()
+    with path.open(encoding="utf-8", errors="replace") as f:
+        for line in f:
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+            except (ValueError, RecursionError):
+                return None  # load_detections names the bad line
+            m = rec.get("model") if isinstance(rec, dict) else None
+            models.add(m if isinstance(m, str) else None)
+            if len(models) > 1:
+                return None
+    return next(iter(models)) if models else None
+
+
 def load_detections(path: str | os.PathLike, seq: Sequence | None = None) -> list[Detection]:
     """Detections from a JSONL file (SPEC §6), a folder of YOLO txt files, or one YOLO txt file.
 

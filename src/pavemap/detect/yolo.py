@@ -22,6 +22,7 @@ import torch
 from pavemap.errors import PavemapError
 from pavemap.io.sequence import load_rgb, write_detections
 from pavemap.types import DEFECT_CODES, Detection, Sequence
+from pavemap.weights.registry import sha256_of
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +131,7 @@ def detect_sequence(
         raise PavemapError(f"conf must be in [0, 1), got {conf}")
     overrides = load_class_map(class_map) if class_map is not None else None
     model = load_detector(weights)
+    model_sha = sha256_of(weights)  # each line names its model: `pavemap fuse` finds the weights' operating point
     lut, dropped = build_class_map(model.names, overrides)
     if dropped:
         log.info("YOLO classes not mapped to D00/D10/D20/D40 are dropped: %s", ", ".join(dropped))
@@ -160,7 +162,7 @@ def detect_sequence(
                 n_dropped += int((~keep).sum())
                 for b, c, s, mc in zip(xyxy[keep], ours[keep], scores[keep], mcls[keep], strict=True):
                     dets.append(Detection(frame, cam, tuple(float(x) for x in b), int(c), float(s)))
-                    extra.append({"model_cls": str(model.names.get(int(mc), mc))})
+                    extra.append({"model_cls": str(model.names.get(int(mc), mc)), "model": model_sha})
             bar.update(len(chunk))
     write_detections(out, dets, extra)
     if n_dropped:

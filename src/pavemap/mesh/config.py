@@ -83,6 +83,12 @@ class MeshConfig:
     seed: int = 0
     device: str = "auto"  # auto, cpu, cuda, cuda:N (pavemap.device.resolve_device)
     threads: int | None = None  # torch CPU threads during the run (None or 0: leave torch's setting)
+    # numpy's and scipy's BLAS threads during stage 1 (0: the libraries' own, one per core). Stage 1 makes
+    # thousands of tiny LAPACK calls (3 x 3 inverses and solves) that a BLAS thread pool hands off and waits for.
+    # On the 2-core bench machine one thread ran the whole `pavemap run` as fast when idle (wall ratio 1.05 demo,
+    # 1.00 nuScenes-like 40 x 6) with 18-19 % less CPU, and 20 % / 15 % faster with another process on a core
+    # (bench/results/cuda.json, blas_threads; same defects)
+    blas_threads: int = 1
     pose_refine: bool = False
     # "frame": the cameras of a frame move together (one rigid rig: the error of an ego pose; SPEC: "a small
     # SE(3) correction per frame"); "view": every image its own correction (per-camera calibration errors).
@@ -251,6 +257,7 @@ class MeshConfig:
             _require(self, name, lambda v: v >= 1, "must be >= 1")
         _require(self, "pose_warmup", lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]")
         _require(self, "threads", lambda v: v is None or v >= 0, "must be >= 0 (0 or null: torch's setting)")
+        _require(self, "blas_threads", lambda v: v >= 0, "must be >= 0 (0: the BLAS libraries' own)")
         _require(self, "pose_per", lambda v: v in typing.get_args(PosePer),
                  f"must be one of {', '.join(typing.get_args(PosePer))}")
         _require(self, "device", is_device_name, f"must be {DEVICE_CHOICES}")

@@ -53,11 +53,14 @@ def reconstruct_piece(seq: Sequence, out_dir: Path | None, config: MeshConfig, p
                       heldout_frames: set[int] | None = None) -> tuple[RoadMesh, dict]:
     """Stage 1 on a sequence in one piece: the mesh and its metrics (:func:`pavemap.mesh.segments.reconstruct`
     decides first whether a long drive is cut into segments, each of which comes here)."""
+    from threadpoolctl import threadpool_limits
+
     threads_before = torch.get_num_threads()
     if config.threads:
         torch.set_num_threads(int(config.threads))
     try:
-        return _reconstruct(seq, out_dir, config, progress, heldout_frames)
+        with threadpool_limits(limits=config.blas_threads or None, user_api="blas"):
+            return _reconstruct(seq, out_dir, config, progress, heldout_frames)
     finally:
         torch.set_num_threads(threads_before)
 

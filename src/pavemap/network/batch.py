@@ -27,6 +27,7 @@ from pathlib import Path
 
 from pavemap.errors import PavemapError
 from pavemap.io.atomic import atomic_write_json
+from pavemap.memory import peak_rss_mb
 from pavemap.network.folder import FORMAT, NETWORK_FILE, read_network
 from pavemap.network.manifest import Drive, Manifest, load_manifest
 
@@ -43,13 +44,6 @@ def config_from_dict(d: dict):  # noqa: ANN201 - RunConfig, imported lazily
     from pavemap.config import apply_overrides, preset_config
 
     return apply_overrides(preset_config(d["preset"]), {k: v for k, v in d.items() if k != "preset"}, "<task>")
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (MiB)."""
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 @contextlib.contextmanager
@@ -162,7 +156,7 @@ def _stamp_key(run: Path, stage: str) -> str | None:
 def is_current(seq: object, cfg: object, run: Path) -> bool:
     """Whether ``run`` is a complete run of ``seq`` with ``cfg``: ``metrics.json`` present and the mesh,
     detect and fuse stamps holding the keys :func:`pavemap.run` would compute now."""
-    from pavemap.detect.backends import resolve_backend
+    from pavemap.detect.backends import detector_model, resolve_backend, resolved_filter
     from pavemap.device import resolve_device
     from pavemap.io.hashes import hash_parts, hash_sequence
     from pavemap.run_folder import COMPLETE, detect_parts, mesh_parts
@@ -172,6 +166,8 @@ def is_current(seq: object, cfg: object, run: Path) -> bool:
     try:
         device = str(resolve_device(cfg.device))  # type: ignore[attr-defined]
         detector, _ = resolve_backend(cfg.detector, seq)  # type: ignore[attr-defined, arg-type]
+        filt, _ = resolved_filter(cfg.filter, cfg.preset,  # type: ignore[attr-defined]
+                                  detector_model(detector, seq))  # type: ignore[arg-type]
         seq_key = hash_sequence(seq)  # type: ignore[arg-type]
     except (PavemapError, OSError, ValueError):
         return False  # the task will say what is wrong
@@ -179,7 +175,7 @@ def is_current(seq: object, cfg: object, run: Path) -> bool:
     mesh = dataclasses.replace(mesh, device=device) if hasattr(mesh, "device") else mesh
     keys = {"mesh": hash_parts(mesh_parts(seq_key, mesh)),
             "detect": hash_parts(detect_parts(seq_key, detector, device, seq))}  # type: ignore[arg-type]
-    keys["fuse"] = hash_parts(keys["detect"], dataclasses.asdict(cfg.filter),  # type: ignore[attr-defined]
+    keys["fuse"] = hash_parts(keys["detect"], dataclasses.asdict(filt),
                               dataclasses.asdict(cfg.fusion))  # type: ignore[attr-defined]
     return all(_stamp_key(run, s) == k for s, k in keys.items())
 

@@ -34,11 +34,16 @@ class KnownWeights:
     what: str
     required: bool = False  # the default of a run: `pavemap weights verify` fails when it is missing
     folder: str = ""  # a sub-folder it may also sit in (shared/data/pretrained/<folder>/<file>)
+    tau_conf: float | None = None  # a detector's measured operating point: the run's filter.tau_conf by default
 
 
 KNOWN: tuple[KnownWeights, ...] = (
     KnownWeights(SHIPPED_WEIGHTS, "53d3ca8ebfeb2c3ee6e91d31ec0ba011a728066beec43a856bd3e0c34192c818", "detector",
-                 "default road-defect detector (YOLOv5n, RDD2022; ships in the package)", required=True),
+                 "default road-defect detector (YOLOv5n, RDD2022; ships in the package)", required=True,
+                 # the largest tau_conf whose F1 on the car-mounted Czech val is within 0.01 of the peak (0.405 vs
+                 # 0.411 at 0.15) with 0.29 instead of 0.45 false boxes per clean frame; bench/results/detector.json
+                 # operating_point_imgsz800 (tests/test_tau_conf.py keeps the two in step)
+                 tau_conf=0.20),
     KnownWeights("espnetv2_s_2.0_city_1024x512.pth",
                  "a72d59699801c7ce8e8b89a53af9097eaaa60dc12180ecde86fd700ba1222fe8", "segmenter",
                  "ESPNetv2 Cityscapes segmenter (sacmehta/EdgeNets; optional)", folder="espnetv2-cityscapes"),
@@ -50,6 +55,14 @@ KNOWN: tuple[KnownWeights, ...] = (
 def known(file: str) -> KnownWeights | None:
     """The registry entry of a file name, or None."""
     return next((k for k in KNOWN if k.file == file), None)
+
+
+def by_sha256(sha256: str) -> KnownWeights | None:
+    """The registry entry whose file has this sha256 (or a prefix of it, >= 12 hex digits), or None."""
+    sha = sha256.lower()
+    if len(sha) < 12:
+        return None
+    return next((k for k in KNOWN if k.sha256.startswith(sha)), None)
 
 
 def packaged_path(file: str = SHIPPED_WEIGHTS) -> Path:
@@ -86,4 +99,4 @@ def sha256_of(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-__all__ = ["KNOWN", "SHIPPED_WEIGHTS", "KnownWeights", "candidates", "known", "packaged_path", "sha256_of"]
+__all__ = ["KNOWN", "SHIPPED_WEIGHTS", "KnownWeights", "by_sha256", "candidates", "known", "packaged_path", "sha256_of"]
