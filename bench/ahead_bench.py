@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import fresh_run_folder, machine_entry, write_results  # noqa: E402
+from common import fresh_run_folder, git_commit, machine_entry, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "ahead.json"
@@ -67,7 +66,7 @@ def main() -> None:
             rows.append(r)
             print(r, flush=True)
     load = os.getloadavg()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    commit = git_commit()
     import json
 
     from pavemap.mesh.config import MeshConfig

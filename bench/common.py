@@ -18,6 +18,15 @@ def bench_parser(doc: str, presets: str, results: Path) -> argparse.ArgumentPars
     return ap
 
 
+def git_commit() -> str:
+    """The checkout's short commit hash, the one every results entry names ("unknown" outside a git clone)."""
+    import subprocess
+
+    r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parent)
+    return r.stdout.strip() or "unknown"
+
+
 def machine_entry() -> dict:
     """Machine and date of a results entry."""
     import platform

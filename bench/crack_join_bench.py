@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import machine_entry, write_results  # noqa: E402
+from common import git_commit, machine_entry, write_results  # noqa: E402
 from scale_bench import PAVEMAP, per_segment, scored_run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,7 +59,7 @@ def main() -> None:
         s = fuse(args.seq, args.run, out, j)
         rows.append({"crack_join_m": j, "fuse_s": round(s, 1), **score(args.seq, out, metrics["mesh"])})
         print(json.dumps(rows[-1]), flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    commit = git_commit()
     # earlier results (another mesh or join rule) stay, under their commit
     old = json.loads(OUT.read_text()) if OUT.is_file() else {}
     history = old.get("history", []) + ([{k: old.get(k) for k in ("commit", "run", "rows", "machine")}]

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -22,7 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import bench_parser, machine_entry, write_results  # noqa: E402
+from common import bench_parser, git_commit, machine_entry, write_results  # noqa: E402
 from mesh_bench import SETTINGS, bench_drive  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +60,7 @@ def main() -> None:
             "ratio_median": round(statistics.median(ratios), 3),
             "ratio_min": round(min(ratios), 3), "ratio_max": round(max(ratios), 3)}
         print(preset, json.dumps(out["presets"][preset]), flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    commit = git_commit()
     try:
         old = json.loads(a.results.read_text())
         history = old.pop("history", []) + [old]

@@ -24,22 +24,15 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine_entry, write_results  # noqa: E402
+from common import git_commit, machine_entry, write_results  # noqa: E402
 
 CLASSES = ("D00", "D10", "D20", "D40")
-
-
-def _commit() -> str:
-    r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                       cwd=Path(__file__).parent)
-    return r.stdout.strip() or "unknown"
 
 
 def _val(model, data_yaml: Path, imgsz: int) -> dict:
@@ -124,7 +117,7 @@ def main() -> None:
              "china_val": resolve_data_yaml(a.data / "rdd2022-china-motorbike" / "data.yaml", work / "cn")}
     bg = _background_frames(a.data / "rdd2022-czech")
     speed_frames = sorted((a.data / "rdd2022-czech" / "images").glob("*.jpg"))[:20]
-    res = {"commit": _commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry(),
+    res = {"commit": git_commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry(),
            "torch_threads": __import__("torch").get_num_threads(), "note": a.note, "models": {}}
     for spec in a.weights:
         name, path = spec.split("=", 1)
@@ -172,7 +165,7 @@ def _thresholds(a: argparse.Namespace) -> None:
         name, path = spec.split("=", 1)
         model = load_detector(path)
         for sz in a.imgsz:
-            run = {"commit": _commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry(),
+            run = {"commit": git_commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry(),
                    "torch_threads": __import__("torch").get_num_threads()}
             t0 = time.perf_counter()
             op = operating_point(model, a.data, sz, taus, a.pred_cache, path)
@@ -202,7 +195,7 @@ def _clips(a: argparse.Namespace) -> None:
     from pavemap.io.atomic import atomic_write_json
 
     res = json.loads(a.results.read_text()) if a.results.is_file() else {}
-    run = {"commit": _commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry()}
+    run = {"commit": git_commit(), "load_avg_1m": round(os.getloadavg()[0], 2), **machine_entry()}
     t0 = time.perf_counter()
     clips = clip_runs(a.data, a.work, [t for t in a.tau if t != 0])
     run |= {"load_avg_1m_end": round(os.getloadavg()[0], 2), "seconds": round(time.perf_counter() - t0)}

@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import machine_entry, write_results  # noqa: E402
+from common import git_commit, machine_entry, write_results  # noqa: E402
 from maintenance_bench import DRIVES, WORLD, compare, map_and_measure, summarise  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "floor_sweep.json"
@@ -314,8 +314,7 @@ def main() -> None:
                     / "floor-sweep")
     ap.add_argument("--results", type=Path, default=RESULTS)
     a = ap.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
-                            ).stdout.strip()
+    commit = git_commit()
     out = {"benchmark": "pothole depth without depth: the floor sweep vs synthetic truth (issue 16)",
            **machine_entry(), "commit": commit,
            "uptime_start": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),

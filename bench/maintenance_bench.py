@@ -53,7 +53,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import machine_entry, no_depth_copy, write_results  # noqa: E402
+from common import git_commit, machine_entry, no_depth_copy, write_results  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "maintenance.json"
 CONFIG_OF = {"nuscenes-like": "nuscenes", "kitti-like": "kitti"}
@@ -376,8 +376,7 @@ def main() -> None:
     args = ap.parse_args()
     t0 = time.perf_counter()
     previous = previous_seconds(args.results)  # a rerun resumes the mesh: keep the last run's stage seconds
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
-                            ).stdout.strip()
+    commit = git_commit()
     load_start = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     out: dict = {"benchmark": "surface measures of mapped defects vs synthetic truth (issue 16)",
                  **machine_entry(), "commit": commit, "uptime_start": load_start, "targets": TARGETS,

@@ -31,7 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import machine_entry, write_results  # noqa: E402
+from common import git_commit, machine_entry, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "march.json"
@@ -105,7 +105,7 @@ def main() -> None:
     a = ap.parse_args()
     from mesh_bench import bench_drive
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    commit = git_commit()
     results = {"benchmark": "compiled CPU ray march vs the torch march (stage-1 renderer)", "commit": commit.strip(),
                **machine_entry(), "march_alone": {}, "stage1": {}}
     for preset in a.presets.split(","):

@@ -113,7 +113,7 @@ def _load() -> str:
 
 
 def main() -> None:
-    from common import machine_entry, write_results
+    from common import git_commit, machine_entry, write_results
     from test_network import OVERRIDES
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -136,8 +136,7 @@ def main() -> None:
     name = "network" + ("-light" if a.config == "light" else "") + ("-preset" if a.drive_size == "preset" else "")
     results = a.results or ROOT / "bench" / "results" / f"{name}.json"
     drives = _drives(data, a.drive_size)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
+    commit = git_commit()
     base = CONFIGS[a.config] or OVERRIDES
     rows = []
     for n in a.sizes.split(","):

@@ -91,7 +91,7 @@ def _py(*args: str) -> dict | list:
 
 
 def main() -> None:
-    from common import machine_entry, write_results
+    from common import git_commit, machine_entry, write_results
     from network_bench import CONFIGS, _drives
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -158,8 +158,7 @@ def main() -> None:
     rows["speedup_vs_serial_warm"] = {"standing_cluster_warm": round(warm / rows["standing_cluster"][1]["wall_s"], 2),
                                       "two_processes_plus_batch_overhead": round(
                                           warm / (rows["two_processes"]["wall_s"] + rows["batch_overhead_s"]), 2)}
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
+    commit = git_commit()
     write_results(a.results, {**machine_entry(), "commit": commit, "load": load, "drives": 2, **rows})
     print(json.dumps(rows, indent=1))
 

@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import machine_entry, write_results  # noqa: E402
+from common import git_commit, machine_entry, write_results  # noqa: E402
 from detector_clips import CLIPS, _one  # noqa: E402
 from refine_real import imported  # noqa: E402
 
@@ -137,7 +137,7 @@ def main() -> None:
     fig.savefig(tmp, dpi=80, pil_kwargs={"quality": 80})
     tmp.replace(a.figure)
     res["figure"] = str(a.figure.relative_to(ROOT)) if a.figure.is_relative_to(ROOT) else str(a.figure)
-    write_results(a.results, {**machine_entry(), **res})
+    write_results(a.results, {"commit": git_commit(), **machine_entry(), **res})
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from common import bench_parser, machine_entry, write_results  # noqa: E402
+from common import bench_parser, git_commit, machine_entry, write_results  # noqa: E402
 from mesh_bench import SETTINGS, bench_drive, height_bias  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct  # noqa: E402
@@ -151,8 +150,7 @@ def main() -> None:
     if parts - {"synthetic", "f1", "real"}:
         raise SystemExit(f"--parts: unknown {sorted(parts - {'synthetic', 'f1', 'real'})}")
     torch.set_num_threads(1)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
+    commit = git_commit()
     stamp = {**machine_entry(), "commit": commit}
     results = json.loads(a.results.read_text()) if a.results.is_file() else {}
     results["targets"] = TARGETS

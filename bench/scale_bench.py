@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from common import fresh_run_folder, machine_entry, write_results  # noqa: E402
+from common import fresh_run_folder, git_commit, machine_entry, write_results  # noqa: E402
 from pavemap.mesh.config import MeshConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -196,7 +196,7 @@ def main() -> None:
             rows.append({"variant": name, "sets": sets, **row(seq, out, n, got, synth_s, name != "whole"),
                          "load_avg_end": [round(x, 2) for x in os.getloadavg()]})
             print(json.dumps({k: v for k, v in rows[-1].items() if k != "per_segment"}), flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout
+    commit = git_commit()
     rows, history = _merged(rows, commit.strip())
     seg = [r for r in rows if r["variant"] == "default"]
     spf = [r["stage1_s_per_frame"] for r in seg]

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import bench_parser, machine_entry, write_results  # noqa: E402
+from common import bench_parser, git_commit, machine_entry, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -204,8 +203,7 @@ def main() -> None:
                     help="what to run; the other parts keep their figures from the results file")
     args = ap.parse_args()
     args.data.mkdir(parents=True, exist_ok=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
+    commit = git_commit()
     res = json.loads(args.results.read_text()) if args.results.is_file() else {}
     res.update({**machine_entry(), "commit": commit, "device": args.device, "load_average_start": os.getloadavg()})
     if "synthetic" in args.parts:

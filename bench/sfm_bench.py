@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from common import git_commit  # bench/ is the script's folder
 from pavemap.io.egomask import detect_ego_mask, mask_report
 from pavemap.sfm.checks import SfmChecks, path_acceleration
 from pavemap.sfm.pipeline import sfm_poses
@@ -252,7 +253,7 @@ def main() -> None:
             continue
         try:
             out[name] = fn()
-            out[name]["commit"] = os.popen("git rev-parse --short HEAD").read().strip()
+            out[name]["commit"] = git_commit()
             out[name]["load_1min"] = round(os.getloadavg()[0], 2)
         except Exception as e:  # report the failure as a figure: the benchmark is the place to see it
             out[name] = {"error": f"{type(e).__name__}: {e}"}

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common import git_commit  # bench/ is the script's folder
+
 OUT = Path(__file__).resolve().parent / "results" / "sfm_drives.json"
 
 
@@ -110,7 +112,7 @@ def main() -> None:
     presets = ap.parse_args().presets or ["kitti-like", "nuscenes-like"]
     if bad := sorted(set(presets) - {"kitti-like", "nuscenes-like"}):
         ap.error(f"unknown preset(s) {', '.join(bad)}: choose kitti-like, nuscenes-like")
-    out: dict = {"what": __doc__.split("\n")[0], "commit": os.popen("git rev-parse --short HEAD").read().strip(),
+    out: dict = {"what": __doc__.split("\n")[0], "commit": git_commit(),
                  "date": time.strftime("%Y-%m-%d"), "load_1min": round(os.getloadavg()[0], 2), "drives": {}}
     with tempfile.TemporaryDirectory(prefix="pavemap-sfm-drives-") as tmp:
         for preset in presets:
