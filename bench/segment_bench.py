@@ -195,11 +195,96 @@ def e2e(data: Path, device: str, frames: int, epochs: int | None) -> dict:
     return out
 
 
+def plane_check_rows(data: Path, device: str) -> dict:
+    """Road IoU of the default pipeline's segmentation (ESPNetv2, ego masked) without and with the plane check
+    (:mod:`pavemap.segment.plane_check`) on both synthetic presets (the true camera height), and what the check
+    relabels on the shared nuScenes clips as imported by ``detector_bench.py --parts clips`` (no road truth
+    there: shares, and the figure ``docs/plane_check_nuscenes.jpg``)."""
+    import copy
+
+    from pavemap.io.sequence import load_semantics, read_sequence
+    from pavemap.segment.auto import espnet_semantics
+
+    out: dict = {"synthetic": [], "real": []}
+    for preset, p in SYNTH.items():
+        seq = read_sequence(synth(data, preset, p["frames"], p["scale"]))
+        truth = {(f.index, c): seq.class_lut("road")[load_semantics(seq.path(v.semantics))]
+                 for f in seq.frames for c, v in f.views.items()}
+        height = {"kitti-like": 1.65, "nuscenes-like": 1.509}[preset]
+        row: dict = {"preset": preset, "views": len(truth), "camera_height_m": height}
+        for check in (False, True):
+            s = copy.deepcopy(seq)
+            for f in s.frames:
+                for v in f.views.values():
+                    v.semantics = None
+            folder = data / f"plane-check-{preset}-{check}"
+            shutil.rmtree(folder, ignore_errors=True)
+            t0 = time.perf_counter()
+            s = espnet_semantics(s, device=device, out_root=folder, camera_height=height, plane_check=check)
+            sec = time.perf_counter() - t0
+            inter = union = 0
+            for f in s.frames:
+                for c, v in f.views.items():
+                    road, tr = s.class_lut("road")[load_semantics(s.path(v.semantics))], truth[(f.index, c)]
+                    inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
+            key = "with_check" if check else "without_check"
+            row[key] = {"road_iou": round(inter / union, 4), "seconds": round(sec, 2)}
+        print(row, flush=True)
+        out["synthetic"].append(row)
+    out["real"] = _plane_check_real(data)
+    return out
+
+
+def _plane_check_real(data: Path) -> list[dict]:
+    import copy
+
+    from PIL import Image
+
+    from pavemap.io.sequence import load_rgb, load_semantics, read_sequence
+    from pavemap.segment.labels import PRESETS
+    from pavemap.segment.plane_check import plane_check_sequence
+
+    rows, tiles = [], []
+    for clip, show in (("nuscenes-clip-1", 18), ("nuscenes-clip-2", 5)):
+        root = data / "real" / clip
+        if not (root / "sequence.json").is_file():
+            rows.append({"clip": clip, "skipped": f"{root} not imported (run detector_bench.py --parts clips)"})
+            continue
+        seq = copy.deepcopy(read_sequence(root))
+        seq.classes = list(PRESETS["cityscapes"]().classes)
+        work = data / f"plane-check-{clip}"
+        shutil.rmtree(work, ignore_errors=True)
+        before = {}
+        for f in seq.frames:
+            for cam, v in f.views.items():
+                dst = work / cam / f"{f.index:06d}.png"
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy(seq.path(v.semantics), dst)
+                v.semantics, before[(f.index, cam)] = str(dst), load_semantics(dst)
+        t0 = time.perf_counter()
+        rep = plane_check_sequence(seq)
+        rows.append({"clip": clip, "views": rep.views, "checked": rep.checked,
+                     "road_share_relabelled": round(rep.relabelled_px / max(rep.road_px, 1), 4),
+                     "seconds": round(time.perf_counter() - t0, 2), "left_unchanged": rep.skipped})
+        print(rows[-1], flush=True)
+        f = next(fr for fr in seq.frames if fr.index == show)
+        cam, v = next(iter(f.views.items()))
+        img, lab, was = load_rgb(seq.path(v.image)), load_semantics(v.semantics), before[(f.index, cam)]
+        vis = img.copy()
+        vis[lab == 0] = (0.6 * vis[lab == 0] + 0.4 * np.array([128, 64, 128])).astype(np.uint8)
+        vis[(was == 0) & (lab != 0)] = [255, 0, 255]
+        tiles.append(np.asarray(Image.fromarray(vis).resize((800, 450))))
+    if tiles:
+        fig = ROOT / "docs" / "plane_check_nuscenes.jpg"
+        Image.fromarray(np.concatenate(tiles, 1)).save(fig, quality=85)
+    return rows
+
+
 def main() -> None:
     ap = bench_parser(__doc__, "", ROOT / "bench" / "results" / "segment.json")
     ap.add_argument("--e2e-frames", type=int, default=12)
     ap.add_argument("--skip-e2e", action="store_true")
-    ap.add_argument("--parts", nargs="+", default=["synthetic", "real", "confusion", "e2e"],
+    ap.add_argument("--parts", nargs="+", default=["synthetic", "real", "confusion", "plane_check", "e2e"],
                     help="what to run; the other parts keep their figures from the results file")
     args = ap.parse_args()
     args.data.mkdir(parents=True, exist_ok=True)
@@ -212,6 +297,8 @@ def main() -> None:
         res["real"] = real_rows(args.device)
     if "confusion" in args.parts:
         res["confusion"] = {"commit": commit, "rows": confusion_rows(args.data, args.device)}
+    if "plane_check" in args.parts:
+        res["plane_check"] = {"commit": commit, **plane_check_rows(args.data, args.device)}
     if "e2e" in args.parts and not args.skip_e2e:
         res["end_to_end"] = e2e(args.data, args.device, args.e2e_frames, args.epochs)
     res["load_average_end"] = os.getloadavg()

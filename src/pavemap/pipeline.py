@@ -257,7 +257,7 @@ def _run_claimed(seq: Sequence, cfg: RunConfig, detector: DetectorConfig, why: s
                         out, ", ".join(folder.info["kept"][:5]))
         from pavemap.segment.auto import semantics_for_run
 
-        seq, semantics = semantics_for_run(seq, segmenter, segmenter_weights, device, out)
+        seq, semantics = semantics_for_run(seq, segmenter, segmenter_weights, device, out, cfg.mesh.camera_height)
         log.info("semantics: %s", semantics)
         result = _run(seq, cfg, detector, device, out, progress, semantics)
         result.preset, result.detector = preset_note, f"{detector.backend} ({why})"

@@ -91,7 +91,8 @@ def add_semantics(seq: Sequence, labels: Path | None, class_map: str | None, seg
         return "corridor fallback"
     if spec == "auto" or spec in ARCHS:
         try:
-            espnet_semantics(seq, arch_of(spec), segmenter_weights, device, segmenter=shared)  # type: ignore[arg-type]
+            espnet_semantics(seq, arch_of(spec), segmenter_weights, device, segmenter=shared,  # type: ignore[arg-type]
+                             camera_height=camera_height)
             return f"{arch_of(spec)} segmenter"
         except (GreyImagesError, WeightsMissingError) as e:
             if spec != "auto":

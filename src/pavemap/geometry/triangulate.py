@@ -39,16 +39,18 @@ class Triangulation:
 
 
 def plane_homography(K_i: np.ndarray, T_i: np.ndarray, K_j: np.ndarray, T_j: np.ndarray,
-                     normal: np.ndarray, offset: float) -> np.ndarray:
+                     normal: np.ndarray, offset: float, normalise: bool = True) -> np.ndarray:
     """(3, 3) homography taking pixels of view i to pixels of view j through the world plane
-    ``normal . X = offset``: ``H = K_j (R_ji + t_ji n_i^T / d_i) K_i^-1``."""
+    ``normal . X = offset``: ``H = K_j (R_ji + t_ji n_i^T / d_i) K_i^-1``. ``normalise`` False: unscaled, so
+    the third coordinate of ``H x`` is the plane point's depth in j over its depth in i (its sign says whether
+    the point is on the same side of both cameras; normalised, ``H[2, 2]`` = 1 loses that sign)."""
     R_i, t_i, R_j, t_j = T_i[:3, :3], T_i[:3, 3], T_j[:3, :3], T_j[:3, 3]
     n_i = R_i.T @ normal
     d_i = offset - float(normal @ t_i)
     R_ji = R_j.T @ R_i
     t_ji = R_j.T @ (t_i - t_j)
     H = K_j @ (R_ji + np.outer(t_ji, n_i) / d_i) @ np.linalg.inv(K_i)
-    return H / H[2, 2]
+    return H / H[2, 2] if normalise else H
 
 
 def apply_homography(H: np.ndarray, uv: np.ndarray) -> np.ndarray:

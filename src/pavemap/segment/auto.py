@@ -75,11 +75,14 @@ def camera_ego_masks(seq: Sequence, detect: bool = True) -> dict[str, np.ndarray
 
 def espnet_semantics(seq: Sequence, arch: str = DEFAULT, weights: str | os.PathLike | None = None,
                      device: str = "auto", out_root: str | os.PathLike | None = None, batch: int = 4,
-                     width: int | None = None, segmenter: EspnetSegmenter | None = None) -> Sequence:
+                     width: int | None = None, segmenter: EspnetSegmenter | None = None,
+                     camera_height: float | None = None, plane_check: bool = True) -> Sequence:
     """Label every view of ``seq`` with the ESPNet / ESPNetv2 segmenter, the ego vehicle masked (see
     :func:`segment_sequence` for ``out_root``). Grey images or missing weights: a one-line error.
     ``segmenter``: one already made for this ``arch`` and ``width`` (the import's, which labelled SfM's
-    vehicle masks: what it remembers is not labelled again)."""
+    vehicle masks: what it remembers is not labelled again). ``plane_check``: then relabel the road pixels that
+    are off the road plane ``camera_height`` below the cameras (None: each camera's ``height_m``;
+    :mod:`pavemap.segment.plane_check`), said on the console."""
     check_colour(seq)
     try:
         find_weights(arch, weights)
@@ -88,20 +91,28 @@ def espnet_semantics(seq: Sequence, arch: str = DEFAULT, weights: str | os.PathL
     same = (segmenter is not None and segmenter.arch.name == arch and segmenter.width == width
             and segmenter.path == find_weights(arch, weights))
     seg = segmenter if same else EspnetSegmenter(arch, weights, device, width)
-    return segment_sequence(seq, seg, batch, camera_ego_masks(seq), out_root)
+    seq = segment_sequence(seq, seg, batch, camera_ego_masks(seq), out_root)
+    if plane_check:
+        from pavemap.segment.plane_check import plane_check_sequence
+
+        rep = plane_check_sequence(seq, camera_height)
+        log.info("%s", rep.describe())
+        if rep.skipped:
+            log.info("plane check skipped: %s", "; ".join(rep.skipped))
+    return seq
 
 
 def has_semantics(seq: Sequence) -> bool:
     return any(v.semantics for f in seq.frames for v in f.views.values())
 
 
-def _stamp(seq: Sequence, arch: str, path: Path) -> dict:
+def _stamp(seq: Sequence, arch: str, path: Path, camera_height: float | None) -> dict:
     from pavemap.io.hashes import hash_sequence
     from pavemap.version import code_version
 
     st = path.stat()
     return {"arch": arch, "weights": str(path.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns,
-            "sequence": hash_sequence(seq), "code": code_version()}
+            "sequence": hash_sequence(seq), "code": code_version(), "plane_check_height": camera_height}
 
 
 def _reuse(seq: Sequence, out: Path, stamp: dict) -> bool:
@@ -125,12 +136,13 @@ def _reuse(seq: Sequence, out: Path, stamp: dict) -> bool:
 
 
 def semantics_for_run(seq: Sequence, spec: str, weights: str | os.PathLike | None, device: str,
-                      out: Path) -> tuple[Sequence, str]:
+                      out: Path, camera_height: float | None = None) -> tuple[Sequence, str]:
     """A drive without semantic maps gets the segmenter's, written under the run folder ``out`` (the sequence
     folder is not touched); returns the sequence to run on (a copy when labelled) and what was done.
 
     ``spec`` ``auto``: missing weights or grey images fall back to running without semantics (said in the
     returned text and a warning); ``espnet`` / ``espnetv2``: they are errors; ``none``: no segmenter.
+    ``camera_height``: the run's camera-height prior, for the plane check of the road mask.
     """
     if spec not in CHOICES:
         raise PavemapError(f"--segmenter {spec!r}: choose {', '.join(CHOICES)}")
@@ -149,10 +161,10 @@ def semantics_for_run(seq: Sequence, spec: str, weights: str | os.PathLike | Non
         log.warning("%s", msg)
         return seq, "none (" + ("grey images" if isinstance(e, GreyImagesError) else "segmenter weights missing") + ")"
     seq = copy.deepcopy(seq)
-    stamp = _stamp(seq, arch, path)
+    stamp = _stamp(seq, arch, path, camera_height)
     if _reuse(seq, out, stamp):
         return seq, f"{arch} segmenter ({path}), reused from {out / 'semantics'}"
     log.info("no semantic maps: segmenting with %s (%s)", arch, path)
-    seq = espnet_semantics(seq, arch, path, device, out_root=out)
+    seq = espnet_semantics(seq, arch, path, device, out_root=out, camera_height=camera_height)
     atomic_write_json(out / STAMP, stamp)  # after the labels: a stamp never vouches for half a set
     return seq, f"{arch} segmenter ({path})"

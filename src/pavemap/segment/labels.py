@@ -84,7 +84,9 @@ CITYSCAPES_NAMES = ["road", "sidewalk", "building", "wall", "fence", "pole", "tr
                     "bicycle"]
 _CITYSCAPES = [
     SemanticClass(i, n, road=n == "road", movable=i >= 11, sky=n == "sky") for i, n in enumerate(CITYSCAPES_NAMES)
-] + [SemanticClass(19, "other"), SemanticClass(20, "ego", movable=True)]
+] + [SemanticClass(19, "other"), SemanticClass(20, "ego", movable=True),
+      # labelled road by the network but off the road plane (pavemap.segment.plane_check): not ground
+      SemanticClass(21, "above_road", movable=True)]
 #: pavemap's own table (the synthetic world's ids; importers default to it).
 _PAVEMAP = PAVEMAP_CLASSES
 
