@@ -8,12 +8,20 @@ each posed view, two partner views of the same camera (the nearest frame before 
 road-labelled pixels whose colour disagrees in every partner that sees them are relabelled ``above_road``
 (a movable class: no stage uses it as ground, and the road filter does not count it as road).
 
-What it cannot see: a uniform surface (a vehicle's flat panel, a plain sidewalk) agrees with itself under
-any warp, so only its textured edges disagree; the edges are spread over the region by a density rule
-(``window`` of the image width, ``density``). A vehicle moving with the camera disagrees too: it is not
+A uniform surface (a vehicle's flat panel, a plain sidewalk) agrees with itself under any warp, so only its
+edges disagree: the edges are spread around by a density rule (``window`` of the image width, ``density``), and
+over a colour-uniform region (Felzenszwalb's graph segmentation) whose off-plane pixels outnumber its textured
+agreeing ones (a uniform pixel agrees under any warp and says nothing) and cover ``region_min_off_share`` of it;
+a region with more than ``region_max_share`` of the view's road is the road itself and stays (real asphalt is
+smooth at this resolution: its scattered disagreements from shadows and pose noise are not a panel's edges). A vehicle moving with the camera disagrees too: it is not
 road either. A view whose partners do not register on the road (the disagreement on its best-agreeing quarter of
 the road above ``max_noise_diff``: poses or the height off, an exposure jump) is left as it was, and so is a view where
 more than ``max_flagged`` of the road would go: that is a check gone wrong, not a road full of cars.
+
+Above the horizon no road lies: road-labelled pixels whose ray rises above the highest road the drive's own path
+shows (the road under every camera centre within ``horizon_radius_m``, so a climb the car drives is kept) by more
+than ``horizon_margin_deg`` are relabelled too, in the checked views (a uniform sky or roof agrees under any warp).
+Road beyond the path's end that climbs more steeply is lost above the margin; it lies off the mapped corridor.
 """
 
 from __future__ import annotations
@@ -49,6 +57,15 @@ class PlaneCheckConfig:
     window: float = 0.04  # density rule: box window, share of the image width ...
     density: float = 0.15  # ... in which this share of the pixels disagree
     max_flagged: float = 0.5  # a view losing more of its road than this is left unchanged
+    regions: bool = True  # spread the verdict over colour-uniform regions (felzenszwalb) ...
+    region_scale: float = 200.0  # ... of this scale
+    region_ratio: float = 2.0  # ... whose off-plane pixels outnumber their textured on-plane ones this many times
+    region_min_px: int = 30
+    region_min_off_share: float = 0.1  # ... and cover at least this share of the region
+    region_max_share: float = 0.3  # a region with more of the view's road than this is the road itself: kept
+    texture_min: float = 0.04  # gradient (0..1 per pixel) above which an agreeing pixel is evidence of the plane
+    horizon_margin_deg: float = 1.0  # road rising this far above the path's highest road is not road (pose pitch)
+    horizon_radius_m: float = 200.0  # the path's road this near a view bounds where its road can rise
 
 
 @dataclass
@@ -70,7 +87,8 @@ class PlaneCheckReport:
                 "are off the road plane (relabelled above_road)")
         left = [f"{n} {why}" for n, why in ((self.no_partner, "without a partner view"),
                                              (self.not_registered, "whose partners do not register on the road"),
-                                             (self.too_much, "that would lose most of their road")) if n]
+                                             (self.too_much, "that would lose most of their road (there only the road "
+                                                             "above the horizon went)")) if n]
         return text + (f"; left unchanged: {', '.join(left)}" if left else "")
 
 
@@ -95,6 +113,21 @@ def plane_in_front(K_i: np.ndarray, T_i: np.ndarray, normal: np.ndarray, offset:
     a = np.linalg.inv(K_i).T @ n_i  # n_i . K^-1 (u, v, 1) = a . (u, v, 1)
     v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     return (a[0] * u + a[1] * v + a[2]) * d_i > 0
+
+
+def above_path_horizon(cam: Camera, T_i: np.ndarray, centres: np.ndarray, height: float,
+                       cfg: PlaneCheckConfig = PlaneCheckConfig()) -> np.ndarray:
+    """(H, W) bool at ``cam``'s size: the pixels of view i whose ray rises above the highest road point of the
+    drive's path seen from it (the road ``height`` under each of ``centres`` (N, 3) within ``horizon_radius_m``,
+    and the flat horizon) by more than ``horizon_margin_deg``. World z is up."""
+    c = T_i[:3, 3]
+    dist = np.linalg.norm(centres[:, :2] - c[:2], axis=1)
+    near = (dist >= 1.0) & (dist <= cfg.horizon_radius_m)
+    rise = np.arctan2(centres[near, 2] - height - c[2], dist[near]) if near.any() else np.zeros(0)
+    limit = np.radians(cfg.horizon_margin_deg) + max(0.0, float(rise.max(initial=0.0)))
+    v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ (T_i[:3, :3] @ np.linalg.inv(cam.K)).T
+    return rays[..., 2] > np.sin(limit) * np.linalg.norm(rays, axis=-1)
 
 
 def warp_through_plane(img_j: torch.Tensor, H_ij: np.ndarray, size_i: tuple[int, int]) -> tuple[torch.Tensor,
@@ -156,6 +189,7 @@ def off_plane_mask(img_i: torch.Tensor, partners: list[tuple[torch.Tensor, np.nd
     Returns ((H, W) bool, "") or (None, why) when no partner registers on the plane."""
     off = torch.ones_like(road)
     seen = torch.zeros_like(road)
+    agrees = torch.zeros_like(road)
     for img_j, H in partners:
         warped, valid = warp_through_plane(img_j, H, tuple(road.shape))
         valid &= warped[3] > 0.99
@@ -175,6 +209,7 @@ def off_plane_mask(img_i: torch.Tensor, partners: list[tuple[torch.Tensor, np.nd
             continue
         thr = max(cfg.diff_min, cfg.diff_noise_k * low)
         off &= ~valid | (diff > thr)
+        agrees |= valid & (diff <= thr)
         seen |= valid
     if not bool(seen.any()):
         return None, "not_registered"
@@ -184,7 +219,34 @@ def off_plane_mask(img_i: torch.Tensor, partners: list[tuple[torch.Tensor, np.nd
     k = max(3, int(round(cfg.window * road.shape[1])) | 1)
     dens = F.avg_pool2d(o, k, 1, k // 2, count_include_pad=False)[0, 0]
     off = (dens > cfg.density) & road
+    if cfg.regions:
+        off |= _region_verdict(img_i, o[0, 0] > 0, agrees & road, road, cfg)
     return (off if anchor is None else _anchored(off, anchor)), ""
+
+
+def _region_verdict(img: torch.Tensor, off: torch.Tensor, agrees: torch.Tensor, road: torch.Tensor,
+                    cfg: PlaneCheckConfig) -> torch.Tensor:
+    """(H, W) bool: the road of every colour-uniform region of ``img`` (3, H, W) whose off-plane pixels ``off``
+    outnumber its textured agreeing ones (``agrees`` where the image has texture: a uniform pixel agrees under
+    any warp and says nothing) ``region_ratio`` times: a flat panel or a plain sidewalk, whose parallax shows only
+    at its edges."""
+    from skimage.segmentation import felzenszwalb
+
+    gx = (img[:, :, 2:] - img[:, :, :-2]).abs().mean(0)
+    gy = (img[:, 2:, :] - img[:, :-2, :]).abs().mean(0)
+    grad = torch.zeros(img.shape[1:])
+    grad[:, 1:-1] = gx
+    grad[1:-1, :] = torch.maximum(grad[1:-1, :], gy)
+    on = agrees & ~off & (grad > cfg.texture_min)
+    reg = felzenszwalb(img.permute(1, 2, 0).numpy(), scale=cfg.region_scale, sigma=0.5, min_size=cfg.region_min_px)
+    reg_t = torch.from_numpy(reg.astype(np.int64))
+    n = int(reg.max()) + 1
+    n_off = torch.bincount(reg_t[off & road], minlength=n)
+    n_on = torch.bincount(reg_t[on & road], minlength=n)
+    n_road = torch.bincount(reg_t[road], minlength=n)
+    bad = ((n_off >= cfg.region_min_px) & (n_off > cfg.region_ratio * n_on)
+           & (n_off >= cfg.region_min_off_share * n_road) & (n_road <= cfg.region_max_share * int(road.sum())))
+    return bad[reg_t] & road
 
 
 def _partners(views: list[tuple[int, View]], i: int, cfg: PlaneCheckConfig) -> list[int]:
@@ -234,14 +296,16 @@ def _at(mask: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
 def _check_view(seq: Sequence, cam: Camera, views: list[tuple[int, View]], i: int, cache: dict[int, torch.Tensor],
                 road_ids: np.ndarray, skip_ids: np.ndarray, ego_ids: np.ndarray, height: float,
                 cfg: PlaneCheckConfig
-                ) -> tuple[np.ndarray, np.ndarray] | tuple[None, str]:
-    """(labels (H, W) uint8, off-plane road (H, W) bool) or (None, why: a :class:`PlaneCheckReport` counter) for
-    ``views[i]``."""
+                ) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """(labels (H, W) uint8, road to relabel (H, W) bool, why) for ``views[i]``; why: "" or a
+    :class:`PlaneCheckReport` counter: labels None when the view is left as it was, or ``too_much`` when only its
+    road above the horizon goes (the parallax would take most of its road: a check gone wrong; the partners
+    registering on the road vouch for the pose's pitch)."""
     from pavemap.io.sequence import load_semantics
 
     partners = _partners(views, i, cfg)
     if not partners:
-        return None, "no_partner"
+        return None, None, "no_partner"
     _, wcam = _working(cam, cfg)
     size = (wcam.width, wcam.height)
     for j in [i, *partners]:
@@ -258,11 +322,15 @@ def _check_view(seq: Sequence, cam: Camera, views: list[tuple[int, View]], i: in
     anchor = _at(torch.from_numpy(~road_full & ~np.isin(labels, ego_ids)), below.shape)
     off, why = off_plane_mask(cache[i][:3], pairs, road, static, cfg, anchor)
     if off is None:
-        return None, why
+        return None, None, why
     off_np = _at(off, road_full.shape).numpy() & road_full
-    if off_np.sum() > cfg.max_flagged * max(int(road_full.sum()), 1):
-        return None, "too_much"
-    return labels, off_np
+    sky = np.zeros_like(road_full)
+    if road_full.shape == (cam.height, cam.width):
+        centres = np.array([w.T_world_cam[:3, 3] for _, w in views])
+        sky = road_full & above_path_horizon(cam, T_i, centres, height, cfg)
+    if (off_np & ~sky).sum() > cfg.max_flagged * max(int(road_full.sum()), 1):
+        return labels, sky, "too_much"
+    return labels, off_np | sky, ""
 
 
 def plane_check_sequence(seq: Sequence, camera_height: float | None = None,
@@ -290,14 +358,15 @@ def plane_check_sequence(seq: Sequence, camera_height: float | None = None,
         for i, (frame, v) in enumerate(views):
             for k in [k for k in cache if k < i - 16]:
                 del cache[k]  # partners are near frames: an image far behind is not needed again
-            labels, off = _check_view(seq, cam, views, i, cache, road_ids, skip_ids, ego_ids, float(height), cfg)
-            if labels is None:
-                why = str(off)  # the counter's name
+            labels, off, why = _check_view(seq, cam, views, i, cache, road_ids, skip_ids, ego_ids, float(height),
+                                           cfg)
+            if why:
                 setattr(rep, why, getattr(rep, why) + 1)
                 if len(rep.skipped) < 10:
                     rep.skipped.append(f"{name}/{frame}: {why.replace('_', ' ')}")
+            if labels is None or off is None:
                 continue
-            rep.checked += 1
+            rep.checked += int(not why)
             rep.road_px += int(np.isin(labels, road_ids).sum())
             rep.relabelled_px += int(off.sum())
             if off.any():
