@@ -15,6 +15,7 @@ import json
 import os
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -229,9 +230,46 @@ def plane_check_rows(data: Path, device: str) -> dict:
                     inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
             key = "with_check" if check else "without_check"
             row[key] = {"road_iou": round(inter / union, 4), "seconds": round(sec, 2)}
+            if not check:
+                row["rules"] = _rule_rows(s, truth, height)
         print(row, flush=True)
         out["synthetic"].append(row)
     out["real"] = _plane_check_real(data)
+    return out
+
+
+RULES = {"parallax only": {"horizon": False, "regions": False}, "parallax + horizon": {"regions": False},
+         "parallax + regions": {"horizon": False}, "all (default)": {}}
+
+
+def _rule_rows(seq, truth: dict, height: float) -> dict:
+    """Road IoU of the plane check with each of its rules on or off (:data:`RULES`), on copies of the
+    segmenter's labels of ``seq``; time per view of the check alone."""
+    import copy
+
+    from pavemap.io.sequence import load_semantics
+    from pavemap.segment.plane_check import PlaneCheckConfig, plane_check_sequence
+
+    out = {}
+    for name, kw in RULES.items():
+        s = copy.deepcopy(seq)
+        work = Path(tempfile.mkdtemp(prefix="pavemap-rules-"))
+        for f in s.frames:
+            for c, v in f.views.items():
+                dst = work / c / f"{f.index:06d}.png"
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy(s.path(v.semantics), dst)
+                v.semantics = str(dst)
+        t0 = time.perf_counter()
+        plane_check_sequence(s, height, PlaneCheckConfig(**kw))
+        sec = time.perf_counter() - t0
+        inter = union = 0
+        for f in s.frames:
+            for c, v in f.views.items():
+                road, tr = s.class_lut("road")[load_semantics(v.semantics)], truth[(f.index, c)]
+                inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
+        out[name] = {"road_iou": round(inter / union, 4), "seconds_per_view": round(sec / len(truth), 3)}
+        shutil.rmtree(work)
     return out
 
 
@@ -242,7 +280,7 @@ def _plane_check_real(data: Path) -> list[dict]:
 
     from pavemap.io.sequence import load_rgb, load_semantics, read_sequence
     from pavemap.segment.labels import PRESETS
-    from pavemap.segment.plane_check import plane_check_sequence
+    from pavemap.segment.plane_check import PlaneCheckConfig, plane_check_sequence
 
     rows, tiles = [], []
     for clip, show in (("nuscenes-clip-1", 18), ("nuscenes-clip-2", 5)):
@@ -261,11 +299,18 @@ def _plane_check_real(data: Path) -> list[dict]:
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy(seq.path(v.semantics), dst)
                 v.semantics, before[(f.index, cam)] = str(dst), load_semantics(dst)
-        t0 = time.perf_counter()
-        rep = plane_check_sequence(seq)
-        rows.append({"clip": clip, "views": rep.views, "checked": rep.checked,
-                     "road_share_relabelled": round(rep.relabelled_px / max(rep.road_px, 1), 4),
-                     "seconds": round(time.perf_counter() - t0, 2), "left_unchanged": rep.skipped})
+        shares = {}
+        for name, kw in RULES.items():  # the default last: its labels stay for the figure
+            for f in seq.frames:
+                for cam, v in f.views.items():
+                    Image.fromarray(before[(f.index, cam)]).save(v.semantics)
+            t0 = time.perf_counter()
+            rep = plane_check_sequence(seq, cfg=PlaneCheckConfig(**kw))
+            sec = time.perf_counter() - t0
+            shares[name] = round(rep.relabelled_px / max(rep.road_px, 1), 4)
+        rows.append({"clip": clip, "views": rep.views, "checked": rep.checked, "road_share_relabelled": shares[name],
+                     "road_share_relabelled_by_rules": shares, "seconds": round(sec, 2),
+                     "seconds_per_view": round(sec / max(rep.views, 1), 3), "left_unchanged": rep.skipped})
         print(rows[-1], flush=True)
         f = next(fr for fr in seq.frames if fr.index == show)
         cam, v = next(iter(f.views.items()))

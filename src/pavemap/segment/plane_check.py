@@ -13,10 +13,11 @@ edges disagree: the edges are spread around by a density rule (``window`` of the
 over a colour-uniform region (Felzenszwalb's graph segmentation) whose off-plane pixels outnumber its textured
 agreeing ones (a uniform pixel agrees under any warp and says nothing) and cover ``region_min_off_share`` of it;
 a region with more than ``region_max_share`` of the view's road is the road itself and stays (real asphalt is
-smooth at this resolution: its scattered disagreements from shadows and pose noise are not a panel's edges). A vehicle moving with the camera disagrees too: it is not
-road either. A view whose partners do not register on the road (the disagreement on its best-agreeing quarter of
-the road above ``max_noise_diff``: poses or the height off, an exposure jump) is left as it was, and so is a view where
-more than ``max_flagged`` of the road would go: that is a check gone wrong, not a road full of cars.
+smooth at this resolution: its scattered disagreements from shadows and pose noise are not a panel's edges).
+A vehicle moving with the camera disagrees too: it is not road either. A view whose partners do not register on
+the road (the disagreement on its best-agreeing quarter of the road above ``max_noise_diff``: poses or the height
+off, an exposure jump) is left as it was, and so is a view where more than ``max_flagged`` of the road would go:
+that is a check gone wrong, not a road full of cars (there only the road above the horizon goes).
 
 Above the horizon no road lies: road-labelled pixels whose ray rises above the highest road the drive's own path
 shows (the road under every camera centre within ``horizon_radius_m``, so a climb the car drives is kept) by more
@@ -64,6 +65,7 @@ class PlaneCheckConfig:
     region_min_off_share: float = 0.1  # ... and cover at least this share of the region
     region_max_share: float = 0.3  # a region with more of the view's road than this is the road itself: kept
     texture_min: float = 0.04  # gradient (0..1 per pixel) above which an agreeing pixel is evidence of the plane
+    horizon: bool = True  # no road above the path's horizon (below)
     horizon_margin_deg: float = 1.0  # road rising this far above the path's highest road is not road (pose pitch)
     horizon_radius_m: float = 200.0  # the path's road this near a view bounds where its road can rise
 
@@ -125,9 +127,11 @@ def above_path_horizon(cam: Camera, T_i: np.ndarray, centres: np.ndarray, height
     near = (dist >= 1.0) & (dist <= cfg.horizon_radius_m)
     rise = np.arctan2(centres[near, 2] - height - c[2], dist[near]) if near.any() else np.zeros(0)
     limit = np.radians(cfg.horizon_margin_deg) + max(0.0, float(rise.max(initial=0.0)))
-    v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ (T_i[:3, :3] @ np.linalg.inv(cam.K)).T
-    return rays[..., 2] > np.sin(limit) * np.linalg.norm(rays, axis=-1)
+    M = (T_i[:3, :3] @ np.linalg.inv(cam.K)).astype(np.float32)  # world ray = M (u, v, 1): linear in u and v
+    u = np.arange(cam.width, dtype=np.float32)[None, :]
+    v = np.arange(cam.height, dtype=np.float32)[:, None]
+    x, y, z = (M[k, 0] * u + M[k, 1] * v + M[k, 2] for k in range(3))
+    return z > np.float32(np.sin(limit)) * np.sqrt(x * x + y * y + z * z)
 
 
 def warp_through_plane(img_j: torch.Tensor, H_ij: np.ndarray, size_i: tuple[int, int]) -> tuple[torch.Tensor,
@@ -325,7 +329,7 @@ def _check_view(seq: Sequence, cam: Camera, views: list[tuple[int, View]], i: in
         return None, None, why
     off_np = _at(off, road_full.shape).numpy() & road_full
     sky = np.zeros_like(road_full)
-    if road_full.shape == (cam.height, cam.width):
+    if cfg.horizon and road_full.shape == (cam.height, cam.width):
         centres = np.array([w.T_world_cam[:3, 3] for _, w in views])
         sky = road_full & above_path_horizon(cam, T_i, centres, height, cfg)
     if (off_np & ~sky).sum() > cfg.max_flagged * max(int(road_full.sum()), 1):
