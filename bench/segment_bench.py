@@ -223,13 +223,8 @@ def plane_check_rows(data: Path, device: str) -> dict:
             t0 = time.perf_counter()
             s = espnet_semantics(s, device=device, out_root=folder, camera_height=height, plane_check=check)
             sec = time.perf_counter() - t0
-            inter = union = 0
-            for f in s.frames:
-                for c, v in f.views.items():
-                    road, tr = s.class_lut("road")[load_semantics(s.path(v.semantics))], truth[(f.index, c)]
-                    inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
             key = "with_check" if check else "without_check"
-            row[key] = {"road_iou": round(inter / union, 4), "seconds": round(sec, 2)}
+            row[key] = {"road_iou": _road_iou(s, truth), "seconds": round(sec, 2)}
             if not check:
                 row["rules"] = _rule_rows(s, truth, height)
         print(row, flush=True)
@@ -247,30 +242,46 @@ def _rule_rows(seq, truth: dict, height: float) -> dict:
     segmenter's labels of ``seq``; time per view of the check alone."""
     import copy
 
-    from pavemap.io.sequence import load_semantics
     from pavemap.segment.plane_check import PlaneCheckConfig, plane_check_sequence
 
     out = {}
     for name, kw in RULES.items():
         s = copy.deepcopy(seq)
         work = Path(tempfile.mkdtemp(prefix="pavemap-rules-"))
-        for f in s.frames:
-            for c, v in f.views.items():
-                dst = work / c / f"{f.index:06d}.png"
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy(s.path(v.semantics), dst)
-                v.semantics = str(dst)
+        _labels_copied_to(s, work)
         t0 = time.perf_counter()
         plane_check_sequence(s, height, PlaneCheckConfig(**kw))
         sec = time.perf_counter() - t0
-        inter = union = 0
-        for f in s.frames:
-            for c, v in f.views.items():
-                road, tr = s.class_lut("road")[load_semantics(v.semantics)], truth[(f.index, c)]
-                inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
-        out[name] = {"road_iou": round(inter / union, 4), "seconds_per_view": round(sec / len(truth), 3)}
+        out[name] = {"road_iou": _road_iou(s, truth), "seconds_per_view": round(sec / len(truth), 3)}
         shutil.rmtree(work)
     return out
+
+
+def _labels_copied_to(seq, work: Path) -> dict:
+    """Copy each view's label PNG of ``seq`` to ``work``/<camera>/<frame>.png and point the view at the copy (the
+    check rewrites labels in place); {(frame, camera): the labels as they were}."""
+    from pavemap.io.sequence import load_semantics
+
+    before = {}
+    for f in seq.frames:
+        for cam, v in f.views.items():
+            dst = work / cam / f"{f.index:06d}.png"
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(seq.path(v.semantics), dst)
+            v.semantics, before[(f.index, cam)] = str(dst), load_semantics(dst)
+    return before
+
+
+def _road_iou(seq, truth: dict) -> float:
+    """Road IoU of ``seq``'s labels against ``truth`` {(frame, camera): (H, W) bool}, over all views."""
+    from pavemap.io.sequence import load_semantics
+
+    inter = union = 0
+    for f in seq.frames:
+        for c, v in f.views.items():
+            road, tr = seq.class_lut("road")[load_semantics(seq.path(v.semantics))], truth[(f.index, c)]
+            inter, union = inter + int((road & tr).sum()), union + int((road | tr).sum())
+    return round(inter / union, 4)
 
 
 def _plane_check_real(data: Path) -> list[dict]:
@@ -292,13 +303,7 @@ def _plane_check_real(data: Path) -> list[dict]:
         seq.classes = list(PRESETS["cityscapes"]().classes)
         work = data / f"plane-check-{clip}"
         shutil.rmtree(work, ignore_errors=True)
-        before = {}
-        for f in seq.frames:
-            for cam, v in f.views.items():
-                dst = work / cam / f"{f.index:06d}.png"
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy(seq.path(v.semantics), dst)
-                v.semantics, before[(f.index, cam)] = str(dst), load_semantics(dst)
+        before = _labels_copied_to(seq, work)
         shares = {}
         for name, kw in RULES.items():  # the default last: its labels stay for the figure
             for f in seq.frames:

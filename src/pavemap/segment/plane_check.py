@@ -125,8 +125,8 @@ def above_path_horizon(cam: Camera, T_i: np.ndarray, centres: np.ndarray, height
     c = T_i[:3, 3]
     dist = np.linalg.norm(centres[:, :2] - c[:2], axis=1)
     near = (dist >= 1.0) & (dist <= cfg.horizon_radius_m)
-    rise = np.arctan2(centres[near, 2] - height - c[2], dist[near]) if near.any() else np.zeros(0)
-    limit = np.radians(cfg.horizon_margin_deg) + max(0.0, float(rise.max(initial=0.0)))
+    rise = np.arctan2(centres[near, 2] - height - c[2], dist[near])
+    limit = np.radians(cfg.horizon_margin_deg) + float(rise.max(initial=0.0))  # the flat horizon at least
     M = (T_i[:3, :3] @ np.linalg.inv(cam.K)).astype(np.float32)  # world ray = M (u, v, 1): linear in u and v
     u = np.arange(cam.width, dtype=np.float32)[None, :]
     v = np.arange(cam.height, dtype=np.float32)[:, None]
@@ -299,12 +299,12 @@ def _at(mask: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
 
 def _check_view(seq: Sequence, cam: Camera, views: list[tuple[int, View]], i: int, cache: dict[int, torch.Tensor],
                 road_ids: np.ndarray, skip_ids: np.ndarray, ego_ids: np.ndarray, height: float,
-                cfg: PlaneCheckConfig
+                centres: np.ndarray, cfg: PlaneCheckConfig
                 ) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     """(labels (H, W) uint8, road to relabel (H, W) bool, why) for ``views[i]``; why: "" or a
     :class:`PlaneCheckReport` counter: labels None when the view is left as it was, or ``too_much`` when only its
     road above the horizon goes (the parallax would take most of its road: a check gone wrong; the partners
-    registering on the road vouch for the pose's pitch)."""
+    registering on the road vouch for the pose's pitch). ``centres`` (N, 3): the camera's centres along the drive."""
     from pavemap.io.sequence import load_semantics
 
     partners = _partners(views, i, cfg)
@@ -330,7 +330,6 @@ def _check_view(seq: Sequence, cam: Camera, views: list[tuple[int, View]], i: in
     off_np = _at(off, road_full.shape).numpy() & road_full
     sky = np.zeros_like(road_full)
     if cfg.horizon and road_full.shape == (cam.height, cam.width):
-        centres = np.array([w.T_world_cam[:3, 3] for _, w in views])
         sky = road_full & above_path_horizon(cam, T_i, centres, height, cfg)
     if (off_np & ~sky).sum() > cfg.max_flagged * max(int(road_full.sum()), 1):
         return labels, sky, "too_much"
@@ -359,11 +358,12 @@ def plane_check_sequence(seq: Sequence, camera_height: float | None = None,
                                               else "no camera height known"))
             continue
         cache: dict[int, torch.Tensor] = {}
+        centres = np.array([w.T_world_cam[:3, 3] for _, w in views]).reshape(-1, 3)
         for i, (frame, v) in enumerate(views):
             for k in [k for k in cache if k < i - 16]:
                 del cache[k]  # partners are near frames: an image far behind is not needed again
             labels, off, why = _check_view(seq, cam, views, i, cache, road_ids, skip_ids, ego_ids, float(height),
-                                           cfg)
+                                           centres, cfg)
             if why:
                 setattr(rep, why, getattr(rep, why) + 1)
                 if len(rep.skipped) < 10:
