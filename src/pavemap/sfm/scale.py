@@ -172,4 +172,74 @@ def dense_rescale(res: SfmResult, images: list[Path], camera: Camera, camera_hei
     res.info["_heights"] = heights
 
 
-__all__ = ["dense_rescale", "refine_scale", "road_heights", "road_relength"]
+def unmeasured_runs(trusted: np.ndarray, min_steps: int) -> list[tuple[int, int]]:
+    """Maximal runs ``(first, last)`` (inclusive step indices) of at least ``min_steps`` consecutive steps whose
+    ``trusted`` (S,) bool is False: the stretches of a path whose lengths the road could not measure."""
+    runs, start = [], None
+    for i, ok in enumerate(np.append(np.asarray(trusted, bool), True)):
+        if not ok and start is None:
+            start = i
+        elif ok and start is not None:
+            if i - start >= min_steps:
+                runs.append((start, i - 1))
+            start = None
+    return runs
+
+
+def height_relength(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
+                    ego_mask: np.ndarray | None, min_steps: int = 2, passes: int = 3, tol: float = 0.02,
+                    max_change: float = 0.35) -> None:
+    """Each run of ``min_steps`` or more steps the road could not measure takes its scale from the camera height
+    (in place); ``info["height_steps"]`` says which steps, by what factor, from how many cameras.
+
+    Such steps got the ratio of the nearest measured ones (:func:`pavemap.sfm.steps.relength_path`), which is
+    wrong wherever the speed changed in between: on the shared clip into a lot the last four steps came out
+    ~17 % long and the cameras there stood 1.73-1.75 m over the dense road points, 1.43-1.50 m elsewhere. The
+    dense points' heights under the run's cameras (its steps' ends) scale with the run's step lengths, so the
+    run is stretched until their median is ``camera_height`` (``passes`` re-measurements, stopping within
+    ``tol``; at most ``max_change`` either way). A run with fewer than two cameras measured keeps its lengths.
+    The heights of those cameras are then set by construction, not checked: the record says which they are."""
+    rs = res.info.get("road_steps") or {}
+    reg = np.flatnonzero(res.registered)
+    if "road_m" not in rs or len(rs["road_m"]) != len(reg) - 1:
+        return
+    runs = unmeasured_runs(np.array([x is not None for x in rs["road_m"]]), min_steps)
+    if not runs:
+        return
+    T = res.T_world_cam[reg].copy()
+    ims = [images[i] for i in reg]
+    total = np.ones(len(reg) - 1)
+    seen = {r: 0 for r in runs}
+    done = 0
+    for _ in range(passes):
+        done += 1
+        heights, _ = road_heights(ims, T, camera, camera_height, ego_mask)
+        step = np.diff(T[:, :3, 3], axis=0)
+        moved = False
+        for a, b in runs:
+            h = heights[a:b + 2]  # the cameras at the run's steps' ends
+            h = h[np.isfinite(h)]
+            seen[(a, b)] = max(seen[(a, b)], int(h.size))
+            if h.size < 2 or abs(camera_height / float(np.median(h)) - 1.0) < tol:
+                continue
+            new = float(np.clip(total[a] * camera_height / float(np.median(h)), 1 - max_change, 1 + max_change))
+            step[a:b + 1] *= new / total[a]
+            total[a:b + 1] = new
+            moved = True
+        if not moved:
+            break
+        T[1:, :3, 3] = T[0, :3, 3] + np.cumsum(step, axis=0)
+    res.T_world_cam[reg] = T
+    res.info["height_steps"] = {
+        "runs": [{"steps": [a, b], "factor": round(float(total[a]), 4), "cameras_measured": seen[(a, b)]}
+                 for a, b in runs],
+        "passes": done,
+        "cameras_set": sorted({int(i) for a, b in runs if total[a] != 1.0 for i in range(a, b + 2)}),
+    }
+    changed = [r for r in res.info["height_steps"]["runs"] if r["factor"] != 1.0]
+    if changed:
+        log.info("SfM: %d stretch(es) the road could not measure scaled by the camera height: %s", len(changed),
+                 ", ".join(f"steps {r['steps'][0]}-{r['steps'][1]} x{r['factor']:.3f}" for r in changed))
+
+
+__all__ = ["dense_rescale", "height_relength", "refine_scale", "road_heights", "road_relength", "unmeasured_runs"]
