@@ -136,17 +136,11 @@ def nuscenes(clip: str = "nuscenes-front-clip") -> dict:
     d /= np.linalg.norm(d)
     lateral = (C[:, :2] - C[0, :2]) @ np.array([-d[1], d[0]])
     rng = res.info["checks"]["height_range_m"]
-    # the cameras whose heights scaled their own stretch (no road measured there) are not evidence of the height
-    hs = res.info.get("height_steps") or {}
-    own = [h for i, h in enumerate(res.info["checks"]["heights_m"]) if h is not None
-           and i not in set(hs.get("cameras_set", []))]
     return {"frames": len(ims), "registered": int(res.registered.sum()),
             "path_m": round(float(np.linalg.norm(np.diff(C, axis=0), axis=1).sum()), 2),
             "lateral_max_m": round(float(np.abs(lateral).max()), 3),
             "camera_height_range_m": rng,
             "camera_height_halfrange_m": None if rng is None else round((rng[1] - rng[0]) / 2, 3),
-            "camera_height_halfrange_not_height_scaled_m": round((max(own) - min(own)) / 2, 3) if own else None,
-            "height_steps": hs or None,
             "ego_mask": mask_report(mask, "auto").to_dict(), "K_nominal": {"fx": 1266.417, "cx": 816.267,
                                                                           "cy": 491.507},
             "K_refined": res.info.get("K_refined"), "intrinsics_refinement": res.info.get("intrinsics_refinement"),

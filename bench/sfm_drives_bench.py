@@ -98,8 +98,6 @@ def run_drive(truth, method: str) -> dict:  # noqa: ANN001
             "step_turn_error": step_yaw_error(res.T_world_cam[k], T_true[k]),
             "road_yaw": {x: (res.info.get("planar") or {}).get("road_yaw", {}).get(x)
                          for x in ("searched", "corrected")},
-            # stretches of steps the road could not measure, scaled by the camera height (factor 1: left)
-            "height_steps": [r for r in (res.info.get("height_steps") or {}).get("runs", []) if r["factor"] != 1.0],
             "seconds": round(dt, 1)}
 
 

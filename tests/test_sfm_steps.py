@@ -134,39 +134,3 @@ def test_road_sideways_sees_a_path_that_drifts_sideways(tiny_seq):
     # the swung path's own positions match the road far worse than the true path's did
     at_zero_swung = np.array([r["at_zero"] for r in rows if r["at_zero"] is not None])
     assert len(at_zero_swung) == len(at_zero_true) and np.all(at_zero_swung < at_zero_true - 0.2)
-
-
-def test_a_stretch_the_road_could_not_measure_takes_its_scale_from_the_camera_height(monkeypatch):
-    """Steps 5-8 came out 20 % long (no road measured there, so they took their neighbours' ratio); the dense
-    points read the cameras along them 20 % high. The stretch is shrunk until they read the mounting height;
-    the measured steps, a single unmeasured step and a stretch with no height measured keep their lengths."""
-    from pavemap.sfm import result as sfm
-    from pavemap.sfm import scale as sfm_scale
-
-    true = np.ones(12)
-    got = true.copy()
-    got[5:9] *= 1.2  # unmeasured stretch, wrong
-    got[2] *= 1.3  # a single unmeasured step: left alone
-    got[10:12] *= 0.9  # unmeasured stretch whose cameras saw no road: left alone
-    road = [None if i in (2, 5, 6, 7, 8, 10, 11) else 1.0 for i in range(12)]
-    C = np.c_[np.r_[0.0, np.cumsum(got)], np.zeros(13), np.full(13, 1.5)]
-    T = np.tile(np.eye(4), (13, 1, 1))
-    T[:, :3, 3] = C
-    res = sfm.SfmResult(T, np.ones(13, bool), 1.0, 0, np.zeros((0, 3)), {"road_steps": {"road_m": road}})
-
-    def heights(images, T_wc, camera, h0, ego):  # noqa: ANN001, ANN202
-        L = np.linalg.norm(np.diff(T_wc[:, :3, 3], axis=0), axis=1)
-        local = np.r_[L[0], (L[1:] + L[:-1]) / 2, L[-1]]  # a camera's points come from the steps beside it
-        h = h0 * local
-        h[10:] = np.nan
-        return h, {}
-
-    monkeypatch.setattr(sfm_scale, "road_heights", heights)
-    sfm_scale.height_relength(res, ["a.png"] * 13, None, 1.5, None)
-    L = np.linalg.norm(np.diff(res.T_world_cam[:, :3, 3], axis=0), axis=1)
-    assert np.allclose(L[5:9], 1.0, atol=0.03), L
-    assert np.allclose(L[[0, 1, 3, 4, 9]], 1.0) and np.isclose(L[2], 1.3) and np.allclose(L[10:], 0.9)
-    runs = {tuple(r["steps"]): r for r in res.info["height_steps"]["runs"]}
-    assert set(runs) == {(5, 8), (10, 11)} and abs(runs[(5, 8)]["factor"] - 1 / 1.2) < 0.03
-    assert runs[(10, 11)]["factor"] == 1.0 and runs[(10, 11)]["cameras_measured"] == 0
-    assert res.info["height_steps"]["cameras_set"] == [5, 6, 7, 8, 9]

@@ -43,7 +43,7 @@ from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_f
 from pavemap.sfm.planar import planar_result
 from pavemap.sfm.report import write_sfm_report
 from pavemap.sfm.result import SfmRefusedError, SfmResult
-from pavemap.sfm.scale import dense_rescale, height_relength, road_relength
+from pavemap.sfm.scale import dense_rescale, road_relength
 from pavemap.sfm.sparse import fill_between_keyframes, heights_below_path, road_candidates
 from pavemap.types import Camera
 
@@ -188,8 +188,6 @@ def _set_scale(res: SfmResult, images: list[Path], camera: Camera, camera_height
                                           min_share=0.25 if provisional else 0.5)
     if scaled:
         res.info["scale_source"] = "the road's step lengths"
-        if dense_scale:
-            height_relength(res, images, camera, camera_height, ego_mask)
     if dense_scale:
         dense_rescale(res, images, camera, camera_height, ego_mask, apply=not scaled)
         if not scaled and res.info.get("dense_scale", {}).get("applied"):

@@ -128,11 +128,6 @@ def _height_panel(bx, info: dict) -> None:  # noqa: ANN001
     target = info.get("camera_height_m")
     if h and np.isfinite(h).any():
         bx.plot(range(len(h)), h, "o-", ms=3, color="tab:green", label="measured over the road")
-        # these cameras' heights scaled their own stretch (no road steps there): shown, but not a check
-        own = [i for i in (info.get("height_steps") or {}).get("cameras_set", []) if i < len(h) and np.isfinite(h[i])]
-        if own:
-            bx.plot(own, [h[i] for i in own], "o", ms=7, mfc="none", color="tab:orange",
-                    label="set the scale of its stretch")
     else:
         bx.text(0.5, 0.5, "road under the path not measured", ha="center", transform=bx.transAxes)
     if target:
