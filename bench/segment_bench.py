@@ -198,8 +198,9 @@ def e2e(data: Path, device: str, frames: int, epochs: int | None) -> dict:
 
 def plane_check_rows(data: Path, device: str) -> dict:
     """Road IoU of the default pipeline's segmentation (ESPNetv2, ego masked) without and with the plane check
-    (:mod:`pavemap.segment.plane_check`) on both synthetic presets (the true camera height), and what the check
-    relabels on the shared nuScenes clips as imported by ``detector_bench.py --parts clips`` (no road truth
+    (:mod:`pavemap.segment.plane_check`), and with the road vote after it (:mod:`pavemap.segment.road_vote`), on
+    both synthetic presets (the true camera height), and what the check and the vote relabel on the shared
+    nuScenes clips as imported by ``detector_bench.py --parts clips`` (no road truth
     there: shares, and the figure ``docs/plane_check_nuscenes.jpg``)."""
     import copy
 
@@ -213,24 +214,76 @@ def plane_check_rows(data: Path, device: str) -> dict:
                  for f in seq.frames for c, v in f.views.items()}
         height = {"kitti-like": 1.65, "nuscenes-like": 1.509}[preset]
         row: dict = {"preset": preset, "views": len(truth), "camera_height_m": height}
-        for check in (False, True):
+        for key, check, vote in (("without_check", False, False), ("with_check", True, False),
+                                 ("with_check_and_vote", True, True)):
             s = copy.deepcopy(seq)
             for f in s.frames:
                 for v in f.views.values():
                     v.semantics = None
-            folder = data / f"plane-check-{preset}-{check}"
+            folder = data / f"plane-check-{preset}-{key}"
             shutil.rmtree(folder, ignore_errors=True)
             t0 = time.perf_counter()
-            s = espnet_semantics(s, device=device, out_root=folder, camera_height=height, plane_check=check)
-            sec = time.perf_counter() - t0
-            key = "with_check" if check else "without_check"
-            row[key] = {"road_iou": _road_iou(s, truth), "seconds": round(sec, 2)}
+            s = espnet_semantics(s, device=device, out_root=folder, camera_height=height, plane_check=check,
+                                 road_vote=vote)
+            row[key] = {"road_iou": _road_iou(s, truth), "seconds": round(time.perf_counter() - t0, 2)}
             if not check:
                 row["rules"] = _rule_rows(s, truth, height)
         print(row, flush=True)
         out["synthetic"].append(row)
     out["real"] = _plane_check_real(data)
     return out
+
+
+VOTE_DRIVES = [("nuscenes-like", 12, 0.25, 0), ("nuscenes-like", 12, 0.25, 1), ("nuscenes-like", 12, 0.25, 2),
+               ("kitti-like", 12, 0.5, 0), ("kitti-like", 12, 0.5, 1), ("kitti-like", 24, 0.5, 1)]
+VOTE_SHARES = (0.5, 0.6, 0.7)
+
+
+def road_vote_rows(data: Path, device: str) -> list[dict]:
+    """Longer drives than the bench's (12-24 frames, three seeds of the nuScenes-like rig): road IoU of the
+    segmenter with the plane check, then with the road vote at each ``min_road_share`` (the default 0.6), and
+    the ego masks the pipeline found (none: the synthetic rigs show no bonnet)."""
+    import copy
+
+    from pavemap.io.sequence import load_semantics, read_sequence
+    from pavemap.segment.auto import camera_ego_masks, espnet_semantics
+    from pavemap.segment.road_vote import RoadVoteConfig, road_vote_sequence
+
+    rows = []
+    for preset, frames, scale, seed in VOTE_DRIVES:
+        root = data / f"vote-{preset}-{frames}-{scale}-{seed}"
+        if not (root / "sequence.json").is_file():
+            from pavemap.synth import synthesize
+
+            synthesize(root, preset=preset, seed=seed, frames=frames, scale=scale, depth="none", progress=False,
+                       overwrite=True)
+        seq = read_sequence(root)
+        truth = {(f.index, c): seq.class_lut("road")[load_semantics(seq.path(v.semantics))]
+                 for f in seq.frames for c, v in f.views.items()}
+        height = {"kitti-like": 1.65, "nuscenes-like": 1.509}[preset]
+        s = copy.deepcopy(seq)
+        for f in s.frames:
+            for v in f.views.values():
+                v.semantics = None
+        ego = {c: round(float(m.mean()), 4) if m is not None else 0.0 for c, m in camera_ego_masks(s).items()}
+        folder = data / f"vote-labels-{preset}-{frames}-{scale}-{seed}"
+        shutil.rmtree(folder, ignore_errors=True)
+        s = espnet_semantics(s, device=device, out_root=folder, camera_height=height, road_vote=False)
+        row = {"preset": preset, "frames": frames, "scale": scale, "seed": seed, "views": len(truth),
+               "ego_mask_fraction": ego, "with_check": _road_iou(s, truth), "with_check_and_vote": {}}
+        for share in VOTE_SHARES:
+            v = copy.deepcopy(s)
+            work = Path(tempfile.mkdtemp(prefix="pavemap-vote-"))
+            _labels_copied_to(v, work)
+            rep = road_vote_sequence(v, height, RoadVoteConfig(min_road_share=share))
+            row["with_check_and_vote"][str(share)] = {
+                "road_iou": _road_iou(v, truth),
+                "road_share_relabelled": round(rep.relabelled_px / max(rep.road_px, 1), 4),
+                "seconds_per_view": round(rep.seconds / max(rep.views, 1), 3)}
+            shutil.rmtree(work)
+        print(row, flush=True)
+        rows.append(row)
+    return rows
 
 
 RULES = {"parallax only": {"horizon": False, "regions": False}, "parallax + horizon": {"regions": False},
@@ -292,6 +345,7 @@ def _plane_check_real(data: Path) -> list[dict]:
     from pavemap.io.sequence import load_rgb, load_semantics, read_sequence
     from pavemap.segment.labels import PRESETS
     from pavemap.segment.plane_check import PlaneCheckConfig, plane_check_sequence
+    from pavemap.segment.road_vote import road_vote_sequence
 
     rows, tiles = [], []
     for clip, show in (("nuscenes-clip-1", 18), ("nuscenes-clip-2", 5)):
@@ -313,16 +367,23 @@ def _plane_check_real(data: Path) -> list[dict]:
             rep = plane_check_sequence(seq, cfg=PlaneCheckConfig(**kw))
             sec = time.perf_counter() - t0
             shares[name] = round(rep.relabelled_px / max(rep.road_px, 1), 4)
+        checked = {(f.index, cam): load_semantics(v.semantics) for f in seq.frames for cam, v in f.views.items()}
+        vote = road_vote_sequence(seq)
         rows.append({"clip": clip, "views": rep.views, "checked": rep.checked, "road_share_relabelled": shares[name],
                      "road_share_relabelled_by_rules": shares, "seconds": round(sec, 2),
-                     "seconds_per_view": round(sec / max(rep.views, 1), 3), "left_unchanged": rep.skipped})
+                     "seconds_per_view": round(sec / max(rep.views, 1), 3), "left_unchanged": rep.skipped,
+                     "road_vote": {"views": vote.voted, "road_share_relabelled":
+                                   round(vote.relabelled_px / max(vote.road_px, 1), 4),
+                                   "seconds_per_view": round(vote.seconds / max(vote.views, 1), 3),
+                                   "skipped": vote.skipped}})
         print(rows[-1], flush=True)
         f = next(fr for fr in seq.frames if fr.index == show)
         cam, v = next(iter(f.views.items()))
         img, lab, was = load_rgb(seq.path(v.image)), load_semantics(v.semantics), before[(f.index, cam)]
         vis = img.copy()
         vis[lab == 0] = (0.6 * vis[lab == 0] + 0.4 * np.array([128, 64, 128])).astype(np.uint8)
-        vis[(was == 0) & (lab != 0)] = [255, 0, 255]
+        vis[(was == 0) & (checked[(f.index, cam)] != 0)] = [255, 0, 255]
+        vis[(checked[(f.index, cam)] == 0) & (lab != 0)] = [0, 230, 255]
         tiles.append(np.asarray(Image.fromarray(vis).resize((800, 450))))
     if tiles:
         fig = ROOT / "docs" / "plane_check_nuscenes.jpg"
@@ -334,7 +395,8 @@ def main() -> None:
     ap = bench_parser(__doc__, "", ROOT / "bench" / "results" / "segment.json")
     ap.add_argument("--e2e-frames", type=int, default=12)
     ap.add_argument("--skip-e2e", action="store_true")
-    ap.add_argument("--parts", nargs="+", default=["synthetic", "real", "confusion", "plane_check", "e2e"],
+    ap.add_argument("--parts", nargs="+",
+                    default=["synthetic", "real", "confusion", "plane_check", "road_vote", "e2e"],
                     help="what to run; the other parts keep their figures from the results file")
     args = ap.parse_args()
     args.data.mkdir(parents=True, exist_ok=True)
@@ -349,6 +411,8 @@ def main() -> None:
         res["confusion"] = {"commit": commit, "rows": confusion_rows(args.data, args.device)}
     if "plane_check" in args.parts:
         res["plane_check"] = {"commit": commit, **plane_check_rows(args.data, args.device)}
+    if "road_vote" in args.parts:
+        res["road_vote"] = {"commit": commit, "rows": road_vote_rows(args.data, args.device)}
     if "e2e" in args.parts and not args.skip_e2e:
         res["end_to_end"] = e2e(args.data, args.device, args.e2e_frames, args.epochs)
     res["load_average_end"] = os.getloadavg()

@@ -94,7 +94,8 @@ def static_score(images: list[Path], max_frames: int = 20, work_width: int = 320
 
 def detect_ego_mask(images: list[Path], width: int, height: int, max_frames: int = 20, work_width: int = 320,
                     min_ncc: float = 0.5, weak_ncc: float = 0.25, flat_var: float = 1.5, min_below: float = 0.6,
-                    max_gap: int = 5, margin: int = 2, min_cols: float = 0.2) -> np.ndarray:
+                    max_gap: int = 5, margin: int = 2, min_cols: float = 0.2,
+                    min_static_share: float = 0.67) -> np.ndarray:
     """(height, width) bool mask, True on the ego vehicle, from ``images`` of one camera (video order).
 
     A pixel is *static* when textured (local variance > ``flat_var``) and its median NCC across
@@ -103,7 +104,10 @@ def detect_ego_mask(images: list[Path], width: int, height: int, max_frames: int
     of the pixels below it candidates and no ``max_gap`` moving rows in a row below it (flat road
     above the bonnet's edge is not included). Fewer than ``min_cols`` of the columns with ego pixels
     means no ego vehicle; the profile is cleaned over columns and ``margin`` rows (work resolution)
-    are added on top. Needs ≥ 6 frames.
+    are added on top. A region whose textured pixels are less than ``min_static_share`` static is no
+    ego vehicle either: a car's own parts are rigid and fixed to the camera, while a region pieced
+    together from road that merely looks alike over a short straight clip (a solid lane line moving
+    along itself, the car's own shadow, smooth asphalt) is half moving. Needs ≥ 6 frames.
     """
     from scipy import ndimage
 
@@ -142,8 +146,21 @@ def detect_ego_mask(images: list[Path], width: int, height: int, max_frames: int
     run = ndimage.grey_closing(run, size=max(3, w // 10) | 1, mode="nearest")  # fills notches (a reflected line)
     run = np.where(run > 0, run + margin, 0)  # keycorners right on the edge see the bonnet too
     small = np.arange(h)[:, None] >= (h - run)[None, :]
+    if not rigid(small, ncc, var, min_ncc, flat_var, min_static_share):
+        return np.zeros((height, width), dtype=bool)
     full = np.asarray(Image.fromarray(small.astype(np.uint8) * 255).resize((width, height), Image.Resampling.NEAREST))
     return full > 127
+
+
+def rigid(region: np.ndarray, ncc: np.ndarray, var: np.ndarray, min_ncc: float = 0.5, flat_var: float = 1.5,
+          min_share: float = 0.67) -> bool:
+    """Whether ``region`` (h, w) bool is static like a part of the car: at least ``min_share`` of its textured
+    pixels (local variance ``var`` > ``flat_var``) have a median NCC ``ncc`` (h, w) above ``min_ncc``.
+
+    Measured (`detect_ego_mask`'s regions): the real nuScenes bonnets 0.79 and 0.93, a drawn bonnet 0.90;
+    false regions on short synthetic straight drives (lane line, the car's shadow, smooth asphalt) 0.43-0.57."""
+    tex = region & (var > flat_var)
+    return bool(tex.any() and (ncc[tex] > min_ncc).mean() >= min_share)
 
 
 def read_ego_mask(path: str | os.PathLike, width: int, height: int) -> np.ndarray:

@@ -76,7 +76,8 @@ def camera_ego_masks(seq: Sequence, detect: bool = True) -> dict[str, np.ndarray
 def espnet_semantics(seq: Sequence, arch: str = DEFAULT, weights: str | os.PathLike | None = None,
                      device: str = "auto", out_root: str | os.PathLike | None = None, batch: int = 4,
                      width: int | None = None, segmenter: EspnetSegmenter | None = None,
-                     camera_height: float | None = None, plane_check: bool = True) -> Sequence:
+                     camera_height: float | None = None, plane_check: bool = True, road_vote: bool = True
+                     ) -> Sequence:
     """Label every view of ``seq`` with the ESPNet / ESPNetv2 segmenter, the ego vehicle masked (see
     :func:`segment_sequence` for ``out_root``). Grey images or missing weights: a one-line error.
     ``segmenter``: one already made for this ``arch`` and ``width`` (the import's, which labelled SfM's
@@ -99,6 +100,13 @@ def espnet_semantics(seq: Sequence, arch: str = DEFAULT, weights: str | os.PathL
         log.info("%s", rep.describe())
         if rep.skipped:
             log.info("plane check skipped: %s", "; ".join(rep.skipped))
+    if road_vote:
+        from pavemap.segment.road_vote import road_vote_sequence
+
+        vote = road_vote_sequence(seq, camera_height)
+        log.info("%s", vote.describe())
+        if vote.skipped:
+            log.info("road vote skipped: %s", "; ".join(vote.skipped))
     return seq
 
 
