@@ -343,6 +343,7 @@ def _plane_check_real(data: Path) -> list[dict]:
     from PIL import Image
 
     from pavemap.io.sequence import load_rgb, load_semantics, read_sequence
+    from pavemap.segment.auto import espnet_semantics
     from pavemap.segment.labels import PRESETS
     from pavemap.segment.plane_check import PlaneCheckConfig, plane_check_sequence
     from pavemap.segment.road_vote import road_vote_sequence
@@ -354,6 +355,12 @@ def _plane_check_real(data: Path) -> list[dict]:
             rows.append({"clip": clip, "skipped": f"{root} not imported (run detector_bench.py --parts clips)"})
             continue
         seq = copy.deepcopy(read_sequence(root))
+        for f in seq.frames:  # the import's labels are checked and voted already: the segmenter's own, again
+            for v in f.views.values():
+                v.semantics = None
+        raw = data / f"plane-check-{clip}-raw"
+        shutil.rmtree(raw, ignore_errors=True)
+        seq = espnet_semantics(seq, device="cpu", out_root=raw, plane_check=False, road_vote=False)
         seq.classes = list(PRESETS["cityscapes"]().classes)
         work = data / f"plane-check-{clip}"
         shutil.rmtree(work, ignore_errors=True)

@@ -47,6 +47,7 @@ class RoadVoteConfig:
     min_road_share: float = 0.6  # a cell whose views give road less than this share of their votes is not road
     min_views: int = 2
     vote_width: int = 320  # the voters' labels are read at this width (a cell is still several pixels at 30 m)
+    judge_width: int = 640  # a judged view's cells are found at this width
     window_frames: int = 16  # frames judged together; the frames this far either side vote on them too
 
 
@@ -195,17 +196,21 @@ def road_vote_sequence(seq: Sequence, camera_height: float | None = None,
 def _verdict(seq: Sequence, c: str, v, labels: np.ndarray, road: np.ndarray, ground: np.ndarray, tree: cKDTree,
              cells_share_other: tuple[np.ndarray, np.ndarray, np.ndarray], cfg: RoadVoteConfig) -> np.ndarray:
     """(H, W) uint8 ``labels`` of one view with its ``road`` (H, W) pixels on cells that the views judged not
-    road (share below ``cfg.min_road_share``) given the cell's most voted other label."""
+    road (share below ``cfg.min_road_share``) given the cell's most voted other label. The cells are found at
+    ``cfg.judge_width`` (a pixel there is still a fraction of a cell at ``max_range_m``) and read at full size."""
     cells, share, other = cells_share_other
     h, w = labels.shape
-    xy, ok = ground_hits(_k_at(seq, c, w, h), v.T_world_cam, (w, h), ground, tree, cfg.max_range_m)
+    jw = min(w, cfg.judge_width)
+    jh = max(1, round(h * jw / w))
+    xy, ok = ground_hits(_k_at(seq, c, jw, jh), v.T_world_cam, (jw, jh), ground, tree, cfg.max_range_m)
     keys = cell_keys(xy, cfg.cell_m)
     pos = np.clip(np.searchsorted(cells, keys), 0, len(cells) - 1)
-    judged = ok & (cells[pos] == keys) & np.isfinite(share[pos])
-    flip = road.ravel() & judged & (np.nan_to_num(share[pos], nan=1.0) < cfg.min_road_share) & (other[pos] >= 0)
-    out = labels.ravel().copy()
-    out[flip] = other[pos[flip]]
-    return out.reshape(h, w).astype(np.uint8)
+    bad = ok & (cells[pos] == keys) & (np.nan_to_num(share[pos], nan=1.0) < cfg.min_road_share) & (other[pos] >= 0)
+    new = np.where(bad, other[pos], -1).reshape(jh, jw)
+    rows, cols = (np.arange(h) + 0.5) * jh // h, (np.arange(w) + 0.5) * jw // w
+    new = new[rows.astype(int)][:, cols.astype(int)]
+    flip = road & (new >= 0)
+    return np.where(flip, new, labels).astype(np.uint8)
 
 
 def _vote_of(seq: Sequence, view: tuple, ground: np.ndarray, tree: cKDTree, skip_lut: np.ndarray,
