@@ -28,13 +28,14 @@ Road beyond the path's end that climbs more steeply is lost above the margin; it
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch.nn import functional as F  # noqa: N812
 
 from pavemap.geometry.triangulate import plane_homography
+from pavemap.segment.relabel_report import RelabelReport
 from pavemap.types import Camera, Sequence, View
 
 log = logging.getLogger(__name__)
@@ -71,22 +72,18 @@ class PlaneCheckConfig:
 
 
 @dataclass
-class PlaneCheckReport:
-    """What :func:`plane_check_sequence` did, for the console and the stamp."""
+class PlaneCheckReport(RelabelReport):
+    """What :func:`plane_check_sequence` did, for the console and the stamp (``skipped``: up to 10
+    "camera/frame: why")."""
 
-    views: int = 0
     checked: int = 0
     no_partner: int = 0
     not_registered: int = 0
     too_much: int = 0
-    road_px: int = 0
-    relabelled_px: int = 0
-    skipped: list[str] = field(default_factory=list)  # up to 10 "camera/frame: why"
 
     def describe(self) -> str:
-        share = self.relabelled_px / max(self.road_px, 1)
-        text = (f"plane check: {self.checked}/{self.views} views checked, {100 * share:.1f} % of their road pixels "
-                "are off the road plane (relabelled above_road)")
+        text = (f"plane check: {self.checked}/{self.views} views checked, {100 * self.share:.1f} % of their road "
+                "pixels are off the road plane (relabelled above_road)")
         left = [f"{n} {why}" for n, why in ((self.no_partner, "without a partner view"),
                                              (self.not_registered, "whose partners do not register on the road"),
                                              (self.too_much, "that would lose most of their road (there only the road "

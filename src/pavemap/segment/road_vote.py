@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pavemap.segment.relabel_report import RelabelReport
 from pavemap.types import Sequence
 
 log = logging.getLogger(__name__)
@@ -52,20 +53,15 @@ class RoadVoteConfig:
 
 
 @dataclass
-class RoadVoteReport:
+class RoadVoteReport(RelabelReport):
     """What :func:`road_vote_sequence` did, for the console and the bench."""
 
-    views: int = 0
     voted: int = 0
-    road_px: int = 0
-    relabelled_px: int = 0
     seconds: float = 0.0
-    skipped: list[str] = field(default_factory=list)
 
     def describe(self) -> str:
-        share = self.relabelled_px / max(self.road_px, 1)
         return (f"road vote: {self.voted}/{self.views} views judged by the views sharing their ground; "
-                f"{share:.1%} of their road pixels relabelled (other views call that ground something else), "
+                f"{self.share:.1%} of their road pixels relabelled (other views call that ground something else), "
                 f"{self.seconds:.1f} s")
 
 
