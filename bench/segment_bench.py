@@ -157,17 +157,20 @@ def real_rows(device: str, n: int = 6) -> list[dict]:
     return rows
 
 
-def e2e(data: Path, device: str, frames: int, epochs: int | None) -> dict:
-    """F1 of the same run with the true semantics and with the segmenter's (semantics withheld)."""
+def e2e(data: Path, device: str, frames: int, epochs: int | None, preset: str = "kitti-like",
+        scale: float = 0.5) -> dict:
+    """F1 of the same run with the true semantics and with the segmenter's (semantics withheld), on a synthetic
+    ``preset`` drive (the run's config preset of the same rig)."""
     import pavemap
     from pavemap.config import load_config
     from pavemap.io.sequence import read_sequence
     from pavemap.synth import detect_sequence
 
-    src = synth(data, "kitti-like", frames, 0.5)
+    src = synth(data, preset, frames, scale)
     if not (src / "detections.jsonl").is_file():
         detect_sequence(read_sequence(src), seed=0)
-    bare = data / f"segment-e2e-nosem-{frames}"
+    tag = "" if preset == "kitti-like" else f"-{preset}"
+    bare = data / f"segment-e2e-nosem{tag}-{frames}"
     if not (bare / "sequence.json").is_file():
         shutil.copytree(src, bare, ignore=shutil.ignore_patterns("semantics"))
         d = json.loads((bare / "sequence.json").read_text())
@@ -177,12 +180,12 @@ def e2e(data: Path, device: str, frames: int, epochs: int | None) -> dict:
         (bare / "sequence.json").write_text(json.dumps(d))
     out = {}
     for name, seq_dir in (("true_semantics", src), ("segmenter", bare)):
-        cfg = load_config("kitti")
+        cfg = load_config(preset.removesuffix("-like"))
         cfg.device, cfg.detector.backend = device, "file"
         if epochs:
             cfg.mesh.epochs = epochs
         cfg.output.figures = cfg.output.report = False
-        run_dir = data / f"segment-e2e-run-{name}-{frames}"
+        run_dir = data / f"segment-e2e-run{tag}-{name}-{frames}"
         t0 = time.perf_counter()
         r = pavemap.run(read_sequence(seq_dir), cfg, run_dir, overwrite=True, progress=False)
         e = r.evaluation or {}
@@ -192,7 +195,7 @@ def e2e(data: Path, device: str, frames: int, epochs: int | None) -> dict:
         print(name, out[name], flush=True)
     if out["true_semantics"]["f1"] is not None and out["segmenter"]["f1"] is not None:
         out["f1_difference"] = round(out["segmenter"]["f1"] - out["true_semantics"]["f1"], 4)
-    out.update({"preset": "kitti-like", "frames": frames, "scale": 0.5, "mesh_epochs": epochs or "preset"})
+    out.update({"preset": preset, "frames": frames, "scale": scale, "mesh_epochs": epochs or "preset"})
     return out
 
 
@@ -401,6 +404,7 @@ def _plane_check_real(data: Path) -> list[dict]:
 def main() -> None:
     ap = bench_parser(__doc__, "", ROOT / "bench" / "results" / "segment.json")
     ap.add_argument("--e2e-frames", type=int, default=12)
+    ap.add_argument("--e2e-frames-nuscenes", type=int, default=8)
     ap.add_argument("--skip-e2e", action="store_true")
     ap.add_argument("--parts", nargs="+",
                     default=["synthetic", "real", "confusion", "plane_check", "road_vote", "e2e"],
@@ -422,6 +426,8 @@ def main() -> None:
         res["road_vote"] = {"commit": commit, "rows": road_vote_rows(args.data, args.device)}
     if "e2e" in args.parts and not args.skip_e2e:
         res["end_to_end"] = e2e(args.data, args.device, args.e2e_frames, args.epochs)
+        res["end_to_end_nuscenes"] = e2e(args.data, args.device, args.e2e_frames_nuscenes, args.epochs, "nuscenes-like",
+                                         0.25)
     res["load_average_end"] = os.getloadavg()
     write_results(args.results, res)
 
