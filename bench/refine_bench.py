@@ -10,7 +10,8 @@ true surface shifted by -10, -5, +5, +10 cm and the bias after the refinement. W
 commit and date): ``synthetic`` (the above), ``f1`` (whole ``pavemap run`` on the presets' drives with and
 without the refinement: defect F1, precision, recall, stage-1 seconds), ``real`` (the real KITTI sample and the
 two nuScenes clips, imported once into ``--data``/real: the refinement's offset, the consistency check,
-the camera height above the surface, held-out PSNR, seconds; see :mod:`refine_real`).
+the camera height above the surface, held-out PSNR, seconds; see :mod:`refine_real`), ``error_parts`` (where the
+closed form's height error lies: near kerbs, by distance from the path, by spatial scale; :mod:`refine_error_parts`).
 
     python bench/refine_bench.py [--data DIR] [--presets kitti-like,nuscenes-like] [--parts synthetic,f1,real]
                                  [--real-data DIR]
@@ -125,6 +126,18 @@ def f1_runs(seq_dir: Path, preset: str, work: Path) -> dict:
     return out
 
 
+def closed_form_error_parts(seq_dir: Path, preset: str) -> dict:
+    """Where the closed form's error lies on the drive (:mod:`refine_error_parts`)."""
+    from refine_error_parts import error_parts
+
+    seq = read_sequence(seq_dir)
+    cfg = MeshConfig.preset(SETTINGS[preset]["mesh_preset"])
+    cfg.render_scale = SETTINGS[preset]["render_scale"]
+    cfg.device, cfg.resume, cfg.threads = "cpu", False, 1
+    mesh, _ = reconstruct(seq, None, cfg, progress=False)
+    return error_parts(mesh, seq)
+
+
 def synthetic(seq_dir: Path, preset: str) -> dict:
     """The closed form and the refinement on the drive, surfaces shifted by OFFSETS, the Gauss-Newton relief."""
     entry = {"closed_form": run(seq_dir, preset, False)}
@@ -142,13 +155,14 @@ def synthetic(seq_dir: Path, preset: str) -> dict:
 
 def main() -> None:
     ap = bench_parser(__doc__, "kitti-like,nuscenes-like", RESULTS)
-    ap.add_argument("--parts", default="synthetic", help="comma-separated: synthetic, f1, real")
+    ap.add_argument("--parts", default="synthetic", help="comma-separated: synthetic, f1, real, error_parts")
     ap.add_argument("--real-data", type=Path, default=ROOT.parent / "shared" / "data",
                     help="folder of kitti-odometry-sample/, nuscenes-front-clip/, nuscenes-front-clip-2/")
     a = ap.parse_args()
     parts = set(a.parts.split(","))
-    if parts - {"synthetic", "f1", "real"}:
-        raise SystemExit(f"--parts: unknown {sorted(parts - {'synthetic', 'f1', 'real'})}")
+    known = {"synthetic", "f1", "real", "error_parts"}
+    if parts - known:
+        raise SystemExit(f"--parts: unknown {sorted(parts - known)}")
     torch.set_num_threads(1)
     commit = git_commit()
     stamp = {**machine_entry(), "commit": commit}
@@ -160,11 +174,14 @@ def main() -> None:
         results["real"] = {**stamp, "samples": real_samples(a.real_data, a.data / "real")}
         results["real"]["load_avg"] = os.getloadavg()
         write_results(a.results, results)
-    for preset in a.presets.split(",") if parts & {"synthetic", "f1"} else ():
+    for preset in a.presets.split(",") if parts & {"synthetic", "f1", "error_parts"} else ():
         seq_dir = bench_drive(a.data, preset, "none", "cpu")
         if "synthetic" in parts:
             results.update(stamp)  # the top-level commit and date are the synthetic part's
             results.setdefault("presets", {})[preset] = {**synthetic(seq_dir, preset), "load_avg": os.getloadavg()}
+        if "error_parts" in parts:
+            results.setdefault("error_parts", {})[preset] = {**stamp, **closed_form_error_parts(seq_dir, preset)}
+            print(preset, json.dumps(results["error_parts"][preset]), flush=True)
         if "f1" in parts:
             results.setdefault("f1", {})[preset] = {**stamp, **f1_runs(seq_dir, preset, a.data),
                                                     "load_avg": os.getloadavg()}

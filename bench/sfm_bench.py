@@ -4,7 +4,8 @@
   similarity alignment to the true poses, as a share of the path; camera height (scale from the
   known 1.65 m, checked against the true trajectory's scale). Target RMSE ≤ 1 %, height 1.65 ± 0.05 m.
 - ``nuscenes-front-clip`` (21 colour keyframes, nominal intrinsics, bonnet in view): ego mask found
-  automatically, registered frames, lateral deviation of the path from a straight line, camera height
+  automatically and the segmenter's vehicle masks, as the import gives SfM; registered frames, lateral
+  deviation of the path from a straight line, camera height
   constancy. Targets: 21/21, ≤ 0.5 m, ± 5 cm.
 - ``nuscenes-front-clip-2`` (26 colour keyframes, a turn into an open lot; issue 42): the same figures, and
   which method gave the path (COLMAP or the car's planar motion), what was dropped, the total turn, the camera
@@ -41,6 +42,7 @@ from PIL import Image
 
 from common import git_commit  # bench/ is the script's folder
 from pavemap.io.egomask import detect_ego_mask, mask_report
+from pavemap.segment.movers import movable_masks
 from pavemap.sfm.checks import SfmChecks, path_acceleration
 from pavemap.sfm.pipeline import sfm_poses
 from pavemap.types import Camera
@@ -128,7 +130,9 @@ def nuscenes(clip: str = "nuscenes-front-clip") -> dict:
     cam = Camera("front", c["width"], c["height"], np.array(c["K"], float))
     t = time.time()
     mask = detect_ego_mask(ims, cam.width, cam.height)
-    res = sfm_poses(ims, cam, camera_height=1.5, ego_mask=mask, refine_intrinsics=True)
+    # the segmenter's vehicle and people masks, as the user's import gives SfM (`import folder --poses sfm`)
+    movers, _ = movable_masks("auto")
+    res = sfm_poses(ims, cam, camera_height=1.5, ego_mask=mask, refine_intrinsics=True, movers=movers)
     dt = time.time() - t
     dense = res.info.get("dense_scale") or {}
     C = res.T_world_cam[res.registered, :3, 3]
@@ -154,7 +158,7 @@ def nuscenes(clip: str = "nuscenes-front-clip") -> dict:
             "dense_scale": res.info.get("dense_scale"), "road_steps": res.info.get("road_steps"),
             "speed_check": speed_check(res, 2.0),
             "road_sideways": sideways(ims, res, cam, 1.5, mask, lateral),
-            "seconds": round(dt, 1)}
+            "movers": res.info.get("movers"), "seconds": round(dt, 1)}
 
 
 def sideways(ims: list[Path], res, cam: Camera, h: float, mask, lateral: np.ndarray) -> dict:  # noqa: ANN001
