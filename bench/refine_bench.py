@@ -11,7 +11,9 @@ commit and date): ``synthetic`` (the above), ``f1`` (whole ``pavemap run`` on th
 without the refinement: defect F1, precision, recall, stage-1 seconds), ``real`` (the real KITTI sample and the
 two nuScenes clips, imported once into ``--data``/real: the refinement's offset, the consistency check,
 the camera height above the surface, held-out PSNR, seconds; see :mod:`refine_real`), ``error_parts`` (where the
-closed form's height error lies: near kerbs, by distance from the path, by spatial scale; :mod:`refine_error_parts`).
+closed form's height error lies: near kerbs and by their side, by distance from the path, by spatial scale, and
+with the truth's road / off-road sides at the kerbs; :mod:`refine_error_parts`), ``relief_rounds`` (the closed form
+on three drives per preset with 2 / 4 / 8 robust rounds in the kerb refit: what chose ``refit_iterations``).
 
     python bench/refine_bench.py [--data DIR] [--presets kitti-like,nuscenes-like] [--parts synthetic,f1,real]
                                  [--real-data DIR]
@@ -128,14 +130,18 @@ def f1_runs(seq_dir: Path, preset: str, work: Path) -> dict:
 
 def closed_form_error_parts(seq_dir: Path, preset: str) -> dict:
     """Where the closed form's error lies on the drive (:mod:`refine_error_parts`)."""
-    from refine_error_parts import error_parts
+    from refine_error_parts import error_parts, truth_sides
 
     seq = read_sequence(seq_dir)
     cfg = MeshConfig.preset(SETTINGS[preset]["mesh_preset"])
     cfg.render_scale = SETTINGS[preset]["render_scale"]
     cfg.device, cfg.resume, cfg.threads = "cpu", False, 1
     mesh, _ = reconstruct(seq, None, cfg, progress=False)
-    return error_parts(mesh, seq)
+    out = error_parts(mesh, seq)
+    mesh, _ = truth_sides(seq, cfg)
+    parts = error_parts(mesh, seq)
+    out["with_truth_kerb_sides"] = {k: parts[k] for k in ("bias_m", "rmse_m", "kerb_sides")}
+    return out
 
 
 def synthetic(seq_dir: Path, preset: str) -> dict:
@@ -155,12 +161,13 @@ def synthetic(seq_dir: Path, preset: str) -> dict:
 
 def main() -> None:
     ap = bench_parser(__doc__, "kitti-like,nuscenes-like", RESULTS)
-    ap.add_argument("--parts", default="synthetic", help="comma-separated: synthetic, f1, real, error_parts")
+    ap.add_argument("--parts", default="synthetic",
+                    help="comma-separated: synthetic, f1, real, error_parts, relief_rounds")
     ap.add_argument("--real-data", type=Path, default=ROOT.parent / "shared" / "data",
                     help="folder of kitti-odometry-sample/, nuscenes-front-clip/, nuscenes-front-clip-2/")
     a = ap.parse_args()
     parts = set(a.parts.split(","))
-    known = {"synthetic", "f1", "real", "error_parts"}
+    known = {"synthetic", "f1", "real", "error_parts", "relief_rounds"}
     if parts - known:
         raise SystemExit(f"--parts: unknown {sorted(parts - known)}")
     torch.set_num_threads(1)
@@ -174,7 +181,7 @@ def main() -> None:
         results["real"] = {**stamp, "samples": real_samples(a.real_data, a.data / "real")}
         results["real"]["load_avg"] = os.getloadavg()
         write_results(a.results, results)
-    for preset in a.presets.split(",") if parts & {"synthetic", "f1", "error_parts"} else ():
+    for preset in a.presets.split(",") if parts & {"synthetic", "f1", "error_parts", "relief_rounds"} else ():
         seq_dir = bench_drive(a.data, preset, "none", "cpu")
         if "synthetic" in parts:
             results.update(stamp)  # the top-level commit and date are the synthetic part's
@@ -182,6 +189,11 @@ def main() -> None:
         if "error_parts" in parts:
             results.setdefault("error_parts", {})[preset] = {**stamp, **closed_form_error_parts(seq_dir, preset)}
             print(preset, json.dumps(results["error_parts"][preset]), flush=True)
+        if "relief_rounds" in parts:
+            from refine_error_parts import relief_rounds
+
+            drives = relief_rounds(a.data, preset, SETTINGS)
+            results.setdefault("relief_rounds", {})[preset] = {**stamp, "drives": drives, "load_avg": os.getloadavg()}
         if "f1" in parts:
             results.setdefault("f1", {})[preset] = {**stamp, **f1_runs(seq_dir, preset, a.data),
                                                     "load_avg": os.getloadavg()}

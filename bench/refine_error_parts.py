@@ -4,14 +4,23 @@ Over the observed vertices of the closed-form surface of a bench drive (no depth
 split three ways: near a height step of the truth (a kerb: the truth's max - min within 0.3 m above a threshold)
 and away from one; by distance from the drive's path; and by spatial scale (the error smoothed by a Gaussian of
 sigma 0.5-4 m, a normalised convolution over the observed vertices, and what is left). A refinement that moves
-the surface by offsets on cells of a given size can remove at most the smoothed part at that size.
+the surface by offsets on cells of a given size can remove at most the smoothed part at that size. At the kerbs
+(truth step > 10 cm) the error is split again by the side of the step (the road's lower side, the higher
+sidewalk side) and by the distance from the step's other side (0.1 / 0.2 / 0.3 m rings).
+
+:func:`truth_sides` reruns the closed form with the kerb refit's road / off-road vertex sides replaced by the
+truth's at the kerbs: what a perfect placement of the step would give.
 """
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 STEPS_M = (0.03, 0.05, 0.10)
+KERB_M = 0.10
+RINGS_M = (0.1, 0.2, 0.3)
 SIGMAS_M = (0.5, 1.0, 2.0, 4.0)
 BANDS_M = ((0, 2), (2, 4), (4, 6), (6, 10), (10, 1000))
 
@@ -55,6 +64,7 @@ def error_parts(mesh, seq) -> dict:  # noqa: ANN001
                 "from_m": a, "to_m": b, "vertex_share": round(float(k.sum() / mask.sum()), 4),
                 "bias_m": round(float(err[k].mean()), 4), "rmse_m": _rms(err[k]),
                 "squared_error_share": round(float((err[k] ** 2).sum()) / total, 4)})
+    out["kerb_sides"] = _kerb_sides(err, mask, z, zmax, zmin, s.res, total)
     w = mask.astype(float)
     for sig in SIGMAS_M:
         px = sig / s.res
@@ -62,3 +72,117 @@ def error_parts(mesh, seq) -> dict:  # noqa: ANN001
         out["by_scale"].append({"sigma_m": sig, "smoothed_rmse_m": _rms(low[mask]),
                                 "left_rmse_m": _rms((err - low)[mask])})
     return out
+
+
+def _part(err: np.ndarray, k: np.ndarray, mask: np.ndarray, total: float) -> dict:
+    bias = round(float(err[k].mean()), 4) if k.any() else None
+    return {"vertex_share": round(float(k.sum() / mask.sum()), 4), "bias_m": bias, "rmse_m": _rms(err[k]),
+            "squared_error_share": round(float((err[k] ** 2).sum()) / total, 4)}
+
+
+def _kerb_sides(err: np.ndarray, mask: np.ndarray, z: np.ndarray, zmax: np.ndarray, zmin: np.ndarray, res: float,
+                total: float) -> dict:
+    """The kerb vertices' error by side of the step: lower (the road) and higher (the sidewalk), and per ring of
+    vertices 0-0.1, 0.1-0.2, 0.2-0.3 m from the nearest vertex of the other side."""
+    from scipy import ndimage
+
+    kerb = mask & (zmax - zmin > KERB_M)
+    low = kerb & (z < 0.5 * (zmax + zmin))
+    high = kerb & ~low
+    to_high = ndimage.distance_transform_edt(~high) * res
+    to_low = ndimage.distance_transform_edt(~low) * res
+    rings = []
+    for d in RINGS_M:
+        ring_low = low & (to_high > d - 0.1 + 1e-6) & (to_high <= d + 1e-6)
+        ring_high = high & (to_low > d - 0.1 + 1e-6) & (to_low <= d + 1e-6)
+        rings.append({"to_m": d, "low": _part(err, ring_low, mask, total), "high": _part(err, ring_high, mask, total)})
+    return {"step_above_m": KERB_M, "low": _part(err, low, mask, total), "high": _part(err, high, mask, total),
+            "rings": rings}
+
+
+def truth_sides(seq, cfg) -> tuple:  # noqa: ANN001
+    """Stage 1 on ``seq`` with ``cfg``, the kerb refit given the truth's sides at the kerbs (vertices within 0.3 m
+    of a truth step > 10 cm: 1 on its lower side, 0 on its higher side; elsewhere the baked classes' sides)."""
+    from scipy.spatial import cKDTree
+
+    import pavemap.mesh.train as train
+    from pavemap.io.truth import read_truth_height
+    from pavemap.mesh import reconstruct
+
+    truth, inner = read_truth_height(seq.root), train.initial_heights
+
+    def with_truth(pool, grid, *a, vertex_side=None, **k):  # noqa: ANN001, ANN202
+        if vertex_side is not None:
+            import torch
+
+            xy = grid.vertex_xy()
+            z, inside = (t.numpy() for t in truth.height_at(torch.from_numpy(xy).double()))
+            zz = np.where(inside, z, np.nan)
+            near = cKDTree(xy).query_ball_point(xy, 0.3)
+            zmax = np.array([np.nanmax(zz[n]) for n in near])
+            zmin = np.array([np.nanmin(zz[n]) for n in near])
+            kerb = inside & (zmax - zmin > KERB_M)
+            vertex_side = vertex_side.copy()
+            vertex_side[kerb] = np.where(z[kerb] < 0.5 * (zmax[kerb] + zmin[kerb]), 1, 0)
+        return inner(pool, grid, *a, vertex_side=vertex_side, **k)
+
+    train.initial_heights = with_truth
+    try:
+        return reconstruct(seq, None, cfg, progress=False)
+    finally:
+        train.initial_heights = inner
+
+
+ROUNDS = (2, 4, 8)
+SEEDS = (0, 1, 2)
+
+
+def relief_rounds(data, preset: str, settings: dict, seeds: tuple[int, ...] = SEEDS,  # noqa: ANN001
+                  rounds: tuple[int, ...] = ROUNDS) -> list[dict]:
+    """The closed form on drives of seeds ``seeds`` (no depth; seed 0 is the bench drive), with the kerb refit
+    running each of ``rounds`` robust rounds (``ReliefFit.refit_iterations``): bias, RMSE over observed vertices,
+    stage-1 seconds. What chose the default."""
+    import dataclasses
+    import time
+
+    import pavemap.mesh.relief as relief
+    from common import no_depth_copy
+    from mesh_bench import bench_drive, height_bias
+    from pavemap.io.sequence import read_sequence
+    from pavemap.mesh import MeshConfig, reconstruct
+    from pavemap.synth import synthesize
+
+    rows, inner = [], relief.fit_relief
+    for seed in seeds:
+        if seed == 0:
+            seq_dir = bench_drive(data, preset, "none", "cpu")
+        else:
+            src = data / f"{preset}-seed{seed}-sparse"
+            if not (src / "sequence.json").is_file():
+                synthesize(src, preset, seed=seed, depth="sparse", device="cpu", progress=False)
+            seq_dir = no_depth_copy(src, data / f"{preset}-seed{seed}-none")
+        seq = read_sequence(seq_dir)
+        for n in rounds:
+            def fit_n(*a, _n=n, **k):  # noqa: ANN002, ANN003, ANN202
+                a = list(a)
+                if len(a) > 5:
+                    a[5] = dataclasses.replace(a[5] or relief.ReliefFit(), refit_iterations=_n)
+                else:
+                    k["fit"] = dataclasses.replace(k.get("fit") or relief.ReliefFit(), refit_iterations=_n)
+                return inner(*a, **k)
+
+            cfg = MeshConfig.preset(settings[preset]["mesh_preset"])
+            cfg.render_scale = settings[preset]["render_scale"]
+            cfg.device, cfg.resume, cfg.threads = "cpu", False, 1
+            relief.fit_relief = fit_n
+            try:
+                t = time.perf_counter()
+                mesh, _ = reconstruct(seq, None, cfg, progress=False)
+                secs = time.perf_counter() - t
+            finally:
+                relief.fit_relief = inner
+            hb = height_bias(None, mesh, seq)
+            rows.append({"seed": seed, "refit_iterations": n, "bias_observed_m": hb["height_bias_observed_m"],
+                         "rmse_observed_m": hb["height_rmse_observed_m"], "stage1_seconds": round(secs, 1)})
+            print(preset, json.dumps(rows[-1]), flush=True)
+    return rows
