@@ -27,7 +27,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from common import bench_parser, machine_entry, no_depth_copy, write_results  # noqa: E402
+from common import bench_parser, git_commit, machine_entry, no_depth_copy, write_results  # noqa: E402
 from pavemap.io.sequence import read_sequence  # noqa: E402
 from pavemap.memory import peak_rss_mb  # noqa: E402
 from pavemap.mesh import MeshConfig, reconstruct, render_view  # noqa: E402
@@ -171,7 +171,8 @@ def main() -> None:
     results.setdefault("paper", PAPER)
     key = ("cuda" if a.device.startswith("cuda") else "cpu") + ("-sparse" if a.depth == "sparse" else "")
     entry = results.get(key) if isinstance(results.get(key), dict) and "presets" in results[key] else {}
-    entry = {**entry, **machine_entry(),  # rows of an older run without a depth mode are dropped, not mixed
+    # rows of an older run without a depth mode are dropped, not mixed
+    entry = {**entry, **machine_entry(), "commit": git_commit(),
              "presets": {k: v for k, v in entry.get("presets", {}).items() if v.get("depth") == a.depth}}
     for preset in a.presets.split(","):
         entry["presets"][preset] = run_preset(preset, a.data, a.device, a.out, a.epochs, a.depth)

@@ -48,8 +48,8 @@ class ReliefFit:
     iterations: int = 4
     # rounds of a fit that starts from an earlier fit's weights (``state``, the kerb refit): with 2 the robust
     # weights had not settled once the kerb could step, leaving a 5 cm high strip of sidewalk at a crop's edge
-    # (kitti-like bench drive, observed RMSE 1.91 -> 1.63 cm with 4; five other drives +-0.01 cm; 8: +0.04 cm
-    # on one of them; docs/refine.md, section 6)
+    # (kitti-like bench drive, observed RMSE 1.91 -> 1.63 cm with 4; five other drives within 0.01 cm; 8 rounds:
+    # 1.59 cm there, the same elsewhere, up to 3 s more a drive; docs/refine.md, section 6)
     refit_iterations: int = 4
     margin_s: float = 5.0  # the lattice reaches this far beyond the query points along the road ...
     margin_t: float = 4.0  # ... and across it: points just outside the crop still hold its edge
