@@ -46,9 +46,7 @@ TARGETS = {"shifted_10cm_bias_after_m": 0.01, "closed_form_bias_m": 0.01, "rmse_
 def run(seq_dir: Path, preset: str, refine: bool) -> dict:
     """Stage 1 on the drive, closed form (+ the refinement); the consistency check on in both."""
     seq = read_sequence(seq_dir)
-    cfg = MeshConfig.preset(SETTINGS[preset]["mesh_preset"])
-    cfg.render_scale = SETTINGS[preset]["render_scale"]
-    cfg.device, cfg.resume, cfg.threads = "cpu", False, 1
+    cfg = closed_form_cfg(preset)
     cfg.refine, cfg.consistency_check = refine, True
     t = time.perf_counter()
     mesh, m = reconstruct(seq, None, cfg, progress=False)
@@ -128,14 +126,20 @@ def f1_runs(seq_dir: Path, preset: str, work: Path) -> dict:
     return out
 
 
+def closed_form_cfg(preset: str) -> MeshConfig:
+    """The preset's stage-1 config as the bench runs it: its render scale, CPU, one thread, no resume."""
+    cfg = MeshConfig.preset(SETTINGS[preset]["mesh_preset"])
+    cfg.render_scale = SETTINGS[preset]["render_scale"]
+    cfg.device, cfg.resume, cfg.threads = "cpu", False, 1
+    return cfg
+
+
 def closed_form_error_parts(seq_dir: Path, preset: str) -> dict:
     """Where the closed form's error lies on the drive (:mod:`refine_error_parts`)."""
     from refine_error_parts import error_parts, truth_sides
 
     seq = read_sequence(seq_dir)
-    cfg = MeshConfig.preset(SETTINGS[preset]["mesh_preset"])
-    cfg.render_scale = SETTINGS[preset]["render_scale"]
-    cfg.device, cfg.resume, cfg.threads = "cpu", False, 1
+    cfg = closed_form_cfg(preset)
     mesh, _ = reconstruct(seq, None, cfg, progress=False)
     out = error_parts(mesh, seq)
     mesh, _ = truth_sides(seq, cfg)
@@ -192,7 +196,7 @@ def main() -> None:
         if "relief_rounds" in parts:
             from refine_error_parts import relief_rounds
 
-            drives = relief_rounds(a.data, preset, SETTINGS)
+            drives = relief_rounds(a.data, preset, closed_form_cfg(preset))
             results.setdefault("relief_rounds", {})[preset] = {**stamp, "drives": drives, "load_avg": os.getloadavg()}
         if "f1" in parts:
             results.setdefault("f1", {})[preset] = {**stamp, **f1_runs(seq_dir, preset, a.data),

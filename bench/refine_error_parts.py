@@ -29,6 +29,19 @@ def _rms(a: np.ndarray) -> float:
     return round(float(np.sqrt((a ** 2).mean())), 4) if a.size else None
 
 
+def _truth_window(truth, xy, shape: tuple[int, int], res: float) -> tuple[np.ndarray, ...]:  # noqa: ANN001
+    """The truth's height ``z`` and ``inside`` at the grid points ``xy`` (ny * nx, 2) float64 tensor, and its max
+    and min over the square of +-0.3 m around each, each (ny, nx): where a kerb is and which side is lower."""
+    from scipy import ndimage
+
+    z, inside = truth.height_at(xy)
+    z, inside = z.numpy().reshape(shape), inside.numpy().reshape(shape)
+    r = max(1, round(0.3 / res))
+    zmax = ndimage.maximum_filter(np.where(inside, z, -1e9), size=2 * r + 1)
+    zmin = ndimage.minimum_filter(np.where(inside, z, 1e9), size=2 * r + 1)
+    return z, inside, zmax, zmin
+
+
 def error_parts(mesh, seq) -> dict:  # noqa: ANN001
     """The split above for ``mesh`` (a stage-1 result with ``observed``) on ``seq`` (with a truth height)."""
     from scipy import ndimage
@@ -39,14 +52,10 @@ def error_parts(mesh, seq) -> dict:  # noqa: ANN001
     s, truth = mesh.surface, read_truth_height(seq.root)
     h = s.heights.double().cpu().numpy()
     xy = s.grid_xy().double().cpu().reshape(-1, 2)
-    z, inside = truth.height_at(xy)
-    z, inside = z.numpy().reshape(h.shape), inside.numpy().reshape(h.shape)
+    z, inside, zmax, zmin = _truth_window(truth, xy, h.shape, s.res)
     mask = s.valid.cpu().numpy() & mesh.observed.cpu().numpy() & inside
     err = np.where(mask, h - z, 0.0)
     total = float((err[mask] ** 2).sum())
-    r = max(1, round(0.3 / s.res))
-    zmax = ndimage.maximum_filter(np.where(inside, z, -1e9), size=2 * r + 1)
-    zmin = ndimage.minimum_filter(np.where(inside, z, 1e9), size=2 * r + 1)
     step = zmax - zmin
     out: dict = {"vertices": int(mask.sum()), "grid_m": s.res, "bias_m": round(float(err[mask].mean()), 4),
                  "rmse_m": _rms(err[mask]), "near_truth_step": [], "by_path_distance": [], "by_scale": []}
@@ -101,9 +110,10 @@ def _kerb_sides(err: np.ndarray, mask: np.ndarray, z: np.ndarray, zmax: np.ndarr
 
 
 def truth_sides(seq, cfg) -> tuple:  # noqa: ANN001
-    """Stage 1 on ``seq`` with ``cfg``, the kerb refit given the truth's sides at the kerbs (vertices within 0.3 m
-    of a truth step > 10 cm: 1 on its lower side, 0 on its higher side; elsewhere the baked classes' sides)."""
-    from scipy.spatial import cKDTree
+    """Stage 1 on ``seq`` with ``cfg``, the kerb refit given the truth's sides at the kerbs (the vertices that
+    :func:`error_parts` counts as kerb: 1 on the step's lower side, 0 on its higher side; elsewhere the baked
+    classes' sides)."""
+    import torch
 
     import pavemap.mesh.train as train
     from pavemap.io.truth import read_truth_height
@@ -113,14 +123,11 @@ def truth_sides(seq, cfg) -> tuple:  # noqa: ANN001
 
     def with_truth(pool, grid, *a, vertex_side=None, **k):  # noqa: ANN001, ANN202
         if vertex_side is not None:
-            import torch
-
-            xy = grid.vertex_xy()
-            z, inside = (t.numpy() for t in truth.height_at(torch.from_numpy(xy).double()))
-            zz = np.where(inside, z, np.nan)
-            near = cKDTree(xy).query_ball_point(xy, 0.3)
-            zmax = np.array([np.nanmax(zz[n]) for n in near])
-            zmin = np.array([np.nanmin(zz[n]) for n in near])
+            g = grid.spec
+            jj, ii = np.mgrid[0:g.ny, 0:g.nx]
+            xy = torch.from_numpy(np.stack([g.x0 + ii * g.res, g.y0 + jj * g.res], -1).reshape(-1, 2)).double()
+            vid = np.flatnonzero(grid.valid.reshape(-1))
+            z, inside, zmax, zmin = (arr.reshape(-1)[vid] for arr in _truth_window(truth, xy, (g.ny, g.nx), g.res))
             kerb = inside & (zmax - zmin > KERB_M)
             vertex_side = vertex_side.copy()
             vertex_side[kerb] = np.where(z[kerb] < 0.5 * (zmax[kerb] + zmin[kerb]), 1, 0)
@@ -137,22 +144,22 @@ ROUNDS = (2, 4, 8)
 SEEDS = (0, 1, 2)
 
 
-def relief_rounds(data, preset: str, settings: dict, seeds: tuple[int, ...] = SEEDS,  # noqa: ANN001
+def relief_rounds(data, preset: str, cfg, seeds: tuple[int, ...] = SEEDS,  # noqa: ANN001
                   rounds: tuple[int, ...] = ROUNDS) -> list[dict]:
-    """The closed form on drives of seeds ``seeds`` (no depth; seed 0 is the bench drive), with the kerb refit
-    running each of ``rounds`` robust rounds (``ReliefFit.refit_iterations``): bias, RMSE over observed vertices,
-    stage-1 seconds. What chose the default."""
-    import dataclasses
+    """The closed form (``cfg``) on drives of seeds ``seeds`` (no depth; seed 0 is the bench drive), with the kerb
+    refit running each of ``rounds`` robust rounds (``ReliefFit.refit_iterations``): bias, RMSE over observed
+    vertices, stage-1 seconds. What chose the default."""
+    import functools
     import time
 
     import pavemap.mesh.relief as relief
     from common import no_depth_copy
     from mesh_bench import bench_drive, height_bias
     from pavemap.io.sequence import read_sequence
-    from pavemap.mesh import MeshConfig, reconstruct
+    from pavemap.mesh import reconstruct
     from pavemap.synth import synthesize
 
-    rows, inner = [], relief.fit_relief
+    rows, default = [], relief.ReliefFit
     for seed in seeds:
         if seed == 0:
             seq_dir = bench_drive(data, preset, "none", "cpu")
@@ -163,24 +170,13 @@ def relief_rounds(data, preset: str, settings: dict, seeds: tuple[int, ...] = SE
             seq_dir = no_depth_copy(src, data / f"{preset}-seed{seed}-none")
         seq = read_sequence(seq_dir)
         for n in rounds:
-            def fit_n(*a, _n=n, **k):  # noqa: ANN002, ANN003, ANN202
-                a = list(a)
-                if len(a) > 5:
-                    a[5] = dataclasses.replace(a[5] or relief.ReliefFit(), refit_iterations=_n)
-                else:
-                    k["fit"] = dataclasses.replace(k.get("fit") or relief.ReliefFit(), refit_iterations=_n)
-                return inner(*a, **k)
-
-            cfg = MeshConfig.preset(settings[preset]["mesh_preset"])
-            cfg.render_scale = settings[preset]["render_scale"]
-            cfg.device, cfg.resume, cfg.threads = "cpu", False, 1
-            relief.fit_relief = fit_n
+            relief.ReliefFit = functools.partial(default, refit_iterations=n)  # what fit_relief builds when given none
             try:
                 t = time.perf_counter()
                 mesh, _ = reconstruct(seq, None, cfg, progress=False)
                 secs = time.perf_counter() - t
             finally:
-                relief.fit_relief = inner
+                relief.ReliefFit = default
             hb = height_bias(None, mesh, seq)
             rows.append({"seed": seed, "refit_iterations": n, "bias_observed_m": hb["height_bias_observed_m"],
                          "rmse_observed_m": hb["height_rmse_observed_m"], "stage1_seconds": round(secs, 1)})

@@ -47,7 +47,7 @@ class ReliefFit:
     sigma_floor: float = 0.005  # m: the robust scale never drops below this
     iterations: int = 4
     # rounds of a fit that starts from an earlier fit's weights (``state``, the kerb refit): with 2 the robust
-    # weights had not settled once the kerb could step, leaving a 5 cm high strip of sidewalk at a crop's edge
+    # weights had not settled once the kerb could step, leaving two strips of ground at the crop's edge 5 cm high
     # (kitti-like bench drive, observed RMSE 1.91 -> 1.63 cm with 4; five other drives within 0.01 cm; 8 rounds:
     # 1.59 cm there, the same elsewhere, up to 3 s more a drive; docs/refine.md, section 6)
     refit_iterations: int = 4
