@@ -68,6 +68,37 @@ def test_relength_keeps_a_path_the_road_could_not_measure_and_interpolates_gaps(
     assert np.allclose(np.diff(out[:, 0]), 2.0)  # the unmeasured step takes its neighbours' ratio
 
 
+def test_relength_smooths_the_roads_noise_along_an_sfm_path_and_keeps_its_own_errors():
+    """SfM's scale drifts slowly (the KITTI sample: +22 % over 50 steps) and one road sweep reads a step to a
+    few per cent: the median ratio of the neighbouring steps follows the drift with less of the noise. A step
+    whose SfM length is far off its neighbours' (a forward-motion failure) takes the road's own reading."""
+    true = np.full(30, 5.0)
+    sfm = true * np.linspace(1.0, 1.25, 30)
+    sfm[12] *= 1.6  # SfM's length of one step is wrong by itself
+    C = np.c_[np.r_[0.0, np.cumsum(sfm)], np.zeros(31), np.full(31, 1.5)]
+    others = np.arange(30) != 12
+
+    def est(length: float) -> StepEstimate:
+        return StepEstimate(length, 0.8, 0.2, True, np.zeros(0), np.zeros(0))
+
+    errors = {"per_step": [], "smooth": []}
+    for seed in range(20):
+        noise = 1 + 0.04 * np.random.default_rng(seed).standard_normal(30)
+        steps = [est(v) for v in true * noise]
+        for name, kw in (("per_step", {"window": 0}), ("smooth", {})):
+            got = np.diff(relength_path(C, steps, **kw)[0][:, 0])
+            errors[name].append(np.median(np.abs(got[others] / 5.0 - 1)))
+            assert abs(got[12] - 5.0 * noise[12]) < 1e-9  # the off step: the road's own length
+    assert np.mean(errors["smooth"]) < 0.8 * np.mean(errors["per_step"]), errors
+    # a step whose length the path only guessed (a repaired skid) takes the road's reading, however close
+    guessed = np.zeros(30, bool)
+    guessed[20] = True
+    fixed, _ = relength_path(C, steps, placeholder=guessed)
+    smooth, _ = relength_path(C, steps)
+    assert abs(np.diff(fixed[:, 0])[20] - 5.0 * noise[20]) < 1e-9
+    assert abs(np.diff(smooth[:, 0])[20] - 5.0 * noise[20]) > 1e-3
+
+
 def test_a_road_without_texture_measures_no_step(tmp_path):
     from PIL import Image
 

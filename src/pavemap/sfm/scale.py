@@ -111,7 +111,14 @@ def road_relength(res: SfmResult, images: list[Path], camera: Camera, camera_hei
     est = road_steps([images[i] for i in reg], T, camera, camera_height, ego_mask)
     C = T[:, :3, 3]
     L = np.linalg.norm(np.diff(C, axis=0), axis=1)
-    C_new, factor = relength_path(C, est)
+    # COLMAP's step lengths carry the images' geometry and drift slowly: the road's noisy readings are smoothed
+    # along them; the planar motion's are placeholders, so each step takes the road's own reading
+    if res.info.get("method") == "pycolmap SfM":
+        guessed = np.zeros(len(est), bool)
+        guessed[[k for k in res.info.get("steps", {}).get("repaired", []) if k < len(est)]] = True
+        C_new, factor = relength_path(C, est, placeholder=guessed)
+    else:
+        C_new, factor = relength_path(C, est, window=0)
     trusted = np.array([e.trusted for e in est], dtype=bool)
     road = np.array([e.length_m for e in est])
     moving = trusted & (L > 0.25) & (road > 0.25)

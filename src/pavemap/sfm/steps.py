@@ -15,6 +15,7 @@ z forward), world z up, metres or SfM units (only directions and rotations are u
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -310,13 +311,20 @@ def road_sideways(images: list[Path], T_world_cam: np.ndarray, camera: Camera, c
     return out
 
 
-def relength_path(C: np.ndarray, steps: list[StepEstimate]) -> tuple[np.ndarray, np.ndarray]:
+def relength_path(C: np.ndarray, steps: list[StepEstimate], window: int = 3, max_dev: float = 0.2,
+                  placeholder: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Positions (R, 3) with each step's length from the road where trusted; the factors (R-1,) applied.
 
     ``C`` (R, 3) the path (directions kept), ``steps`` its R-1 road estimates. A step the road could not
     measure keeps its direction and takes the road-to-path ratio of the nearest measured steps (linear
-    in the step index), so the path's scale follows the road along its whole length. A step of no
-    length (a stopped car) stays one; with no measured step at all the path is returned unchanged.
+    in the step index), so the path's scale follows the road along its whole length. ``window`` > 0: every
+    moving step takes the median road-to-path ratio of the measured steps within ``window`` steps of it
+    instead of its own (a path whose step lengths carry information, SfM's, drifts in scale slowly, while
+    one step's road sweep is a noisy reading of it), unless its own ratio is more than ``max_dev`` (log) off
+    theirs: there the path's own length is wrong (a forward-motion SfM failure), not the road's reading noisy,
+    and the road's reading is taken. ``placeholder`` (R-1,) bool: steps whose length the path only guessed
+    (a skid repaired onto the heading) take the road's reading too. A step of no length (a stopped car) stays
+    one; with no measured step at all the path is returned unchanged.
     """
     d = np.diff(C, axis=0)
     L = np.linalg.norm(d, axis=1)
@@ -329,7 +337,19 @@ def relength_path(C: np.ndarray, steps: list[StepEstimate]) -> tuple[np.ndarray,
     idx = np.arange(len(d))
     ratio = (np.interp(idx, idx[long_], road[long_] / L[long_]) if long_.any()
              else np.full(len(d), float(np.nanmedian(road) / max(np.median(L), 1e-9))))
-    factor = np.where(ok & (L > 1e-6), road / np.maximum(L, 1e-9), ratio)
+    own = ok & (L > 1e-6)  # steps that take the road's own reading
+    if window > 0 and long_.any():
+        r = np.where(long_, np.log(np.where(long_, road, 1.0) / np.maximum(L, 1e-9)), np.nan)
+        guessed = np.zeros(len(d), bool) if placeholder is None else np.asarray(placeholder, bool)
+        near = (np.abs(idx[:, None] - idx[None]) <= window) & ~guessed[None]  # (S, S) sound steps in the window
+        with warnings.catch_warnings():  # a window without a measured step: its median is NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            local = np.nanmedian(np.where(near, r[None], np.nan), axis=1)
+        ratio = np.where(np.isfinite(local), np.exp(local), ratio)
+        # the road's own reading where it says the car (nearly) stood, where the path only guessed the length,
+        # and where the path's ratio is far off its neighbours'
+        own &= ~long_ | guessed | ~np.isfinite(local) | (np.abs(r - local) > max_dev)
+    factor = np.where(own, road / np.maximum(L, 1e-9), ratio)
     out = np.vstack([C[:1], C[:1] + np.cumsum(d * factor[:, None], axis=0)])
     return out, factor
 
