@@ -129,6 +129,10 @@ def road_relength(res: SfmResult, images: list[Path], camera: Camera, camera_hei
         "peak_ncc": [round(e.peak, 3) for e in est],
         # the SfM's own camera height along the path, as the road's step lengths read it
         "sfm_height_m": (camera_height * ratio).round(3).tolist(),
+        # the lengths written: the road's reading, or the measured neighbours' ratio on SfM's length
+        "path_m": np.linalg.norm(np.diff(C_new, axis=0), axis=1).round(3).tolist(),
+        "own_reading": [bool(t and abs(f * lk - e.length_m) < 1e-6) for t, f, lk, e in zip(trusted, factor, L, est,
+                                                                                           strict=True)],
     }
     if not trusted.any():
         log.warning("SfM: no step could be measured on the road; keeping the SfM's step lengths")
