@@ -1,13 +1,16 @@
 """Step lengths of a driven path from the road's image motion (the ground-plane homography).
 
 Forward-motion SfM fixes each camera's rotation and direction of travel well, but the length of
-each step only through points whose depth the small forward baseline barely constrains; on the
-shared nuScenes clip consecutive half-second steps came out 15 / 7 / 15 m. The road itself fixes
+each step only through points whose depth the small forward baseline barely constrains, and its
+scale drifts along a clip (+22 % over the KITTI sample's 50 steps). The road itself measures
 them: for a camera ``h`` metres over a locally flat road, a step of ``d`` metres moves the road's
 image by the homography ``K (R + t nᵀ / h) K⁻¹`` with ``t = d · t̂``. With R and t̂ from SfM, the
 one unknown ``d / h`` is found by a 1D sweep of the windowed NCC between the later view's road and
 the earlier view warped onto it (the earlier view saw the same road farther away). This is the
 ground-plane scale of monocular visual odometry (Song & Chandraker 2014; Zhou et al. 2019).
+On COLMAP's path one road reading is a noisy sample of a slowly drifting scale, so
+:func:`relength_path` takes the neighbouring steps' median ratio unless a step's own is far off it
+(the synthetic 2 Hz drives: 0.153 % mean path RMSE after a similarity alignment, 0.213 % per step).
 
 Conventions: poses ``T_world_cam`` (N, 4, 4) camera-to-world, OpenCV camera axes (x right, y down,
 z forward), world z up, metres or SfM units (only directions and rotations are used).
