@@ -22,12 +22,12 @@ OUT = Path(__file__).resolve().parent / "results" / "sfm_ratio_window.json"
 SETTINGS = [(0, float("inf")), (3, float("inf")), (3, 0.1), (3, 0.2)]
 
 
-def _with(window: int, max_dev: float):  # noqa: ANN202
+def _with(window: int, max_dev: float) -> None:
     """The default ``relength_path`` replaced by one with these settings (the planar motion's window=0 stays)."""
     import pavemap.sfm.steps as steps
 
-    original = steps.relength_path.__wrapped__ if hasattr(steps.relength_path, "__wrapped__") else steps.relength_path
-    steps.relength_path = functools.wraps(original)(functools.partial(original, window=window, max_dev=max_dev))
+    original = getattr(steps.relength_path, "func", steps.relength_path)  # a partial set here before: its function
+    steps.relength_path = functools.partial(original, window=window, max_dev=max_dev)
 
 
 def main() -> None:

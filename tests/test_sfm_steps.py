@@ -93,7 +93,7 @@ def test_relength_smooths_the_roads_noise_along_an_sfm_path_and_keeps_its_own_er
     # a step whose length the path only guessed (a repaired skid) takes the road's reading, however close
     guessed = np.zeros(30, bool)
     guessed[20] = True
-    fixed, _ = relength_path(C, steps, placeholder=guessed)
+    fixed, _ = relength_path(C, steps, guessed_length=guessed)
     smooth, _ = relength_path(C, steps)
     assert abs(np.diff(fixed[:, 0])[20] - 5.0 * noise[20]) < 1e-9
     assert abs(np.diff(smooth[:, 0])[20] - 5.0 * noise[20]) > 1e-3

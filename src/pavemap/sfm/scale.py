@@ -112,11 +112,11 @@ def road_relength(res: SfmResult, images: list[Path], camera: Camera, camera_hei
     C = T[:, :3, 3]
     L = np.linalg.norm(np.diff(C, axis=0), axis=1)
     # COLMAP's step lengths carry the images' geometry and drift slowly: the road's noisy readings are smoothed
-    # along them; the planar motion's are placeholders, so each step takes the road's own reading
+    # along them; the planar motion's are all one unit (no length of their own), so each step takes its reading
     if res.info.get("method") == "pycolmap SfM":
         guessed = np.zeros(len(est), bool)
         guessed[[k for k in res.info.get("steps", {}).get("repaired", []) if k < len(est)]] = True
-        C_new, factor = relength_path(C, est, placeholder=guessed)
+        C_new, factor = relength_path(C, est, guessed_length=guessed)
     else:
         C_new, factor = relength_path(C, est, window=0)
     trusted = np.array([e.trusted for e in est], dtype=bool)

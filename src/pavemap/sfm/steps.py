@@ -315,7 +315,7 @@ def road_sideways(images: list[Path], T_world_cam: np.ndarray, camera: Camera, c
 
 
 def relength_path(C: np.ndarray, steps: list[StepEstimate], window: int = 3, max_dev: float = 0.2,
-                  placeholder: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  guessed_length: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Positions (R, 3) with each step's length from the road where trusted; the factors (R-1,) applied.
 
     ``C`` (R, 3) the path (directions kept), ``steps`` its R-1 road estimates. A step the road could not
@@ -325,7 +325,7 @@ def relength_path(C: np.ndarray, steps: list[StepEstimate], window: int = 3, max
     instead of its own (a path whose step lengths carry information, SfM's, drifts in scale slowly, while
     one step's road sweep is a noisy reading of it), unless its own ratio is more than ``max_dev`` (log) off
     theirs: there the path's own length is wrong (a forward-motion SfM failure), not the road's reading noisy,
-    and the road's reading is taken. ``placeholder`` (R-1,) bool: steps whose length the path only guessed
+    and the road's reading is taken. ``guessed_length`` (R-1,) bool: steps whose length the path only guessed
     (a skid repaired onto the heading) take the road's reading too. A step of no length (a stopped car) stays
     one; with no measured step at all the path is returned unchanged.
     """
@@ -343,7 +343,7 @@ def relength_path(C: np.ndarray, steps: list[StepEstimate], window: int = 3, max
     own = ok & (L > 1e-6)  # steps that take the road's own reading
     if window > 0 and long_.any():
         r = np.where(long_, np.log(np.where(long_, road, 1.0) / np.maximum(L, 1e-9)), np.nan)
-        guessed = np.zeros(len(d), bool) if placeholder is None else np.asarray(placeholder, bool)
+        guessed = np.zeros(len(d), bool) if guessed_length is None else np.asarray(guessed_length, bool)
         near = (np.abs(idx[:, None] - idx[None]) <= window) & ~guessed[None]  # (S, S) sound steps in the window
         with warnings.catch_warnings():  # a window without a measured step: its median is NaN
             warnings.simplefilter("ignore", RuntimeWarning)
