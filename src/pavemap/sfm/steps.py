@@ -123,15 +123,14 @@ def _ncc_score(ref: np.ndarray, warped: np.ndarray, valid: np.ndarray, win: int)
 def road_scorer(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: np.ndarray, R_dst: np.ndarray,
                 normal: np.ndarray, h: float, roi_dst: np.ndarray, ego: np.ndarray | None, cfg: StepConfig):  # noqa: ANN201
     """A function of the destination camera's centre (3,) (world) -> the windowed NCC (float) between
-    ``img_dst``'s road pixels ``roi_dst`` and ``img_src`` warped onto them by the road plane's homography.
+    ``img_dst``'s road pixels ``roi_dst`` and ``img_src`` warped onto them through the road plane (a pixel whose
+    road point lies behind the source camera is not compared).
 
     ``img_*`` (H, W) float32 at the matching scale with ``K`` scaled to match; ``T_src`` (4, 4) the source
     camera-to-world pose, ``R_dst`` (3, 3) the destination's rotation; the road is the plane with upward unit
     ``normal`` (3,) ``h`` metres below the source camera; ``ego`` (H, W) True = ego.
     """
     import cv2
-
-    from pavemap.geometry.triangulate import plane_homography
 
     H, W = img_dst.shape
     ys, xs = np.nonzero(roi_dst)
@@ -141,19 +140,21 @@ def road_scorer(img_src: np.ndarray, img_dst: np.ndarray, K: np.ndarray, T_src: 
     ref = img_dst[y0:y1, x0:x1]
     roi = roi_dst[y0:y1, x0:x1]
     src_ok = None if ego is None else (~ego).astype(np.float32)
-    offset = float(normal @ T_src[:3, 3]) - h
-    T_dst = np.eye(4)
-    T_dst[:3, :3] = R_dst
+    offset = float(normal @ T_src[:3, 3]) - h  # the road: normal . X = offset
+    rays = R_dst @ np.linalg.solve(K, pix)  # (3, M) world directions of the destination's pixels
+    down = normal @ rays
+    to_src = K @ T_src[:3, :3].T  # world -> source pixels (homogeneous, depth last)
 
     def score(centre: np.ndarray) -> float:
-        T_dst[:3, 3] = centre
-        Hm = plane_homography(K, T_src, K, T_dst, normal, offset)  # src -> dst
-        q = np.linalg.solve(Hm, pix)  # dst pixels -> src pixels
-        # no test of q's sign: Hm is normalised by Hm[2, 2], which changes sign with d; the road ahead of
-        # the later view is ahead of the earlier one anyway
+        # each destination pixel's road point, then into the source view. Not the plane's homography: that
+        # loses the sign of the depth, and a road point behind the source camera (the destination the rear
+        # view of a step, a clip numbered backwards) lands mirrored on the source's buildings and sky
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            mx = (q[0] / q[2]).reshape(u.shape)
-            my = (q[1] / q[2]).reshape(u.shape)
+            lam = (offset - normal @ centre) / down
+            q = to_src @ (centre[:, None] + lam * rays - T_src[:3, 3, None])
+            front = (lam > 0) & (q[2] > 1e-9)
+            mx = np.where(front, q[0] / q[2], np.nan).reshape(u.shape)
+            my = np.where(front, q[1] / q[2], np.nan).reshape(u.shape)
         inside = np.isfinite(mx) & np.isfinite(my) & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
         mx = np.where(inside, mx, -1.0).astype(np.float32)
         my = np.where(inside, my, -1.0).astype(np.float32)
