@@ -152,6 +152,27 @@ def test_relength_smooths_the_roads_noise_along_an_sfm_path_and_keeps_its_own_er
     assert abs(np.diff(smooth[:, 0])[20] - 5.0 * noise[20]) > 1e-3
 
 
+def test_a_step_far_off_its_neighbours_takes_the_road_only_where_the_road_contradicts_them():
+    """A step whose road-to-SfM ratio is far off its neighbours' takes the road's own reading only where the road's
+    sweep scores the neighbours' length clearly lower than its peak (the SfM's length is wrong there). A sweep
+    with a second, near-equal peak at the neighbours' length (clip 1: a plateau read a 5 m step as 14 m) does not
+    contradict them, and the step keeps their ratio."""
+    sweep = np.linspace(0.5, 20.0, 80)
+
+    def est(length: float, score: np.ndarray | None = None) -> StepEstimate:
+        score = np.exp(-0.5 * ((sweep - length) / 0.6) ** 2) * 0.8 if score is None else score
+        return StepEstimate(length, float(np.max(score)), 0.2, True, sweep, score)
+
+    C = np.c_[np.r_[0.0, np.cumsum(np.full(10, 5.0))], np.zeros(11), np.full(11, 1.5)]  # SfM: 5 m steps
+    two_peaks = 0.8 * np.exp(-0.5 * ((sweep - 14.0) / 0.6) ** 2) + 0.75 * np.exp(-0.5 * ((sweep - 5.0) / 0.6) ** 2)
+    for score, want in ((None, 14.0), (two_peaks, 5.0)):
+        steps = [est(5.0)] * 10
+        steps[5] = est(14.0, score)
+        got = np.diff(relength_path(C, steps)[0][:, 0])
+        assert abs(got[5] - want) < 1e-6, (want, got[5])
+        assert np.allclose(np.delete(got, 5), 5.0)
+
+
 def test_a_road_without_texture_measures_no_step(tmp_path):
     from PIL import Image
 

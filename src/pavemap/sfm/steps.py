@@ -315,8 +315,17 @@ def road_sideways(images: list[Path], T_world_cam: np.ndarray, camera: Camera, c
     return out
 
 
+def _score_at(e: StepEstimate, length: float) -> float:
+    """The road's NCC (float) at ``length`` m on a step's sweep curve (linear between candidates; NaN off it)."""
+    ok = np.isfinite(e.score)
+    if ok.sum() < 2 or not e.sweep_m[ok].min() <= length <= e.sweep_m[ok].max():
+        return float("nan")
+    return float(np.interp(length, e.sweep_m[ok], e.score[ok]))
+
+
 def relength_path(C: np.ndarray, steps: list[StepEstimate], window: int = 3, max_dev: float = 0.2,
-                  guessed_length: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  guessed_length: np.ndarray | None = None,
+                  contradiction: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Positions (R, 3) with each step's length from the road where trusted; the factors (R-1,) applied.
 
     ``C`` (R, 3) the path (directions kept), ``steps`` its R-1 road estimates. A step the road could not
@@ -326,9 +335,11 @@ def relength_path(C: np.ndarray, steps: list[StepEstimate], window: int = 3, max
     instead of its own (a path whose step lengths carry information, SfM's, drifts in scale slowly, while
     one step's road sweep is a noisy reading of it), unless its own ratio is more than ``max_dev`` (log) off
     theirs: there the path's own length is wrong (a forward-motion SfM failure), not the road's reading noisy,
-    and the road's reading is taken. ``guessed_length`` (R-1,) bool: steps whose length the path only guessed
-    (a skid repaired onto the heading) take the road's reading too. A step of no length (a stopped car) stays
-    one; with no measured step at all the path is returned unchanged.
+    and the road's reading is taken, if the road contradicts the neighbours' length: its NCC there more than
+    ``contradiction`` below its peak (a sweep with two near-equal peaks, one at the neighbours' length, does
+    not: clip 1 read a 5 m step as 14 m on such a curve). ``guessed_length`` (R-1,) bool: steps whose length the
+    path only guessed (a skid repaired onto the heading) take the road's reading too. A step of no length (a
+    stopped car) stays one; with no measured step at all the path is returned unchanged.
     """
     d = np.diff(C, axis=0)
     L = np.linalg.norm(d, axis=1)
@@ -352,7 +363,11 @@ def relength_path(C: np.ndarray, steps: list[StepEstimate], window: int = 3, max
         ratio = np.where(np.isfinite(local), np.exp(local), ratio)
         # the road's own reading where it says the car (nearly) stood, where the path only guessed the length,
         # and where the path's ratio is far off its neighbours'
-        own &= ~long_ | guessed | ~np.isfinite(local) | (np.abs(r - local) > max_dev)
+        off = long_ & ~guessed & np.isfinite(local) & (np.abs(r - local) > max_dev)
+        for i in np.flatnonzero(off):
+            at_local = _score_at(steps[i], float(np.exp(local[i]) * L[i]))
+            off[i] = not at_local >= steps[i].peak - contradiction  # NaN (off the curve): the road's own
+        own &= ~long_ | guessed | ~np.isfinite(local) | off
     factor = np.where(own, road / np.maximum(L, 1e-9), ratio)
     out = np.vstack([C[:1], C[:1] + np.cumsum(d * factor[:, None], axis=0)])
     return out, factor
