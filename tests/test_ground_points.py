@@ -252,7 +252,9 @@ def test_far_pass_observes_the_road_beyond_the_last_frame(drive, points):
 
     assert points.stats["far_pairs"] > 0 and near.stats["far_pairs"] == 0
     beyond = ahead(points) > ahead(near).max()
-    assert beyond.sum() >= 10, beyond.sum()
+    # (the near pass matches each pair from the view ahead, so its points reach 20 m past the end here, 18 m when
+    # it matched from the view behind, and fewer of the far pass's lie beyond them: 9 of its points, 19 before)
+    assert beyond.sum() >= 5, beyond.sum()
     assert ahead(points).max() >= ahead(near).max() + 5.0
     err = points.points[beyond, 2] - sample_grid(grid, heights, points.points[beyond, :2])
     # on the grade of the road: level sweep planes put these points 5 cm low (their median: -5.1 cm)

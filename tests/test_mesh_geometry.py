@@ -109,8 +109,9 @@ def test_a_single_frame_is_not_a_confident_map(drive):
 
 def test_poses_with_a_wrong_scale_are_named(drive):
     """Poses x2 (a wrong unit, an SfM scale): the ground the images show lies twice as far below the
-    cameras as the mount height says. The ground-point sweep (prior x0.6 .. x1.65) cannot reach it, so the
-    geometry is not observable; the plane search's height, far off the prior, names the likely cause."""
+    cameras as the mount height says. The ground-point sweep (prior x0.6 .. x1.65) reaches it only where the
+    road's grade brings it into range, and those points say 2.3 m; the search centred on that finds the road
+    at twice the mount height, and the warning names the scale."""
     seq = dataclasses.replace(drive[0], frames=[dataclasses.replace(f) for f in drive[0].frames])
     for f in seq.frames:
         f.views = {k: dataclasses.replace(v, T_world_cam=np.r_[np.c_[v.T_world_cam[:3, :3],
@@ -120,9 +121,10 @@ def test_poses_with_a_wrong_scale_are_named(drive):
     notes: list[str] = []
     data = prepare(seq, cfg, torch.device("cpu"), notes.append)
     geo = find_geometry(seq, data, cfg, notes.append)
-    assert any(n.startswith("geometry not observable") for n in notes), notes
+    assert geo.source == "ground points" and data.gp.stats["recentred_from_m"] == pytest.approx(drive[3], abs=1e-3)
+    assert abs(geo.found / (2 * drive[3]) - 1) < 0.03, geo.found
     warn = [n for n in notes if "wrong scale" in n]
-    assert warn and geo.cam_h > 1.4 * drive[3] and f"(x{geo.cam_h / drive[3]:.2f})" in warn[0], notes
+    assert warn and f"(x{geo.found / cfg.camera_height:.2f})" in warn[0], notes
 
 
 def test_ground_points_hand_their_images_to_the_pool(drive, monkeypatch):

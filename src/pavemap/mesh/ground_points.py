@@ -141,18 +141,34 @@ def _overlap(a: ViewData, b: ViewData, H: np.ndarray, step: int = 16) -> float:
     return float((inside & b.mask[qi[:, 1], qi[:, 0]]).mean())
 
 
+def _overlap_between(a: ViewData, b: ViewData, cfg: GroundConfig) -> float:
+    """:func:`_overlap` of a's ground in b through the prior road plane under a."""
+    return _overlap(a, b, plane_homography(a.cam.K, a.T, b.cam.K, b.T, Z_UP, float(a.T[2, 3] - cfg.prior_height)))
+
+
 def _partners(vds: list[ViewData], i: int, cfg: GroundConfig) -> list[int]:
-    """Later views (same frame other cameras, next ``max_gap`` frames) that see enough of i's ground."""
+    """Views within ``max_gap`` frames, earlier or later (same frame other cameras too), that see enough of i's
+    ground and whose pair is i's to match: each pair is matched once, from the view whose ground the other sees
+    more of. Going forwards that is the view ahead: its near road, sharp and textured, lies in the view behind,
+    farther off, while the view behind sees its own near road not at all from ahead (on a 2 Hz synthetic
+    nuScenes-like drive matching from the view behind found 347 points, from the view ahead 1,927). A clip
+    numbered backwards, a reversing car and a rear camera get the same pairs."""
     a = vds[i]
+    lo, hi = i, i  # views are in frame order
+    while lo > 0 and a.pos - vds[lo - 1].pos <= cfg.max_gap:
+        lo -= 1
+    while hi + 1 < len(vds) and vds[hi + 1].pos - a.pos <= cfg.max_gap:
+        hi += 1
+    cands = [j for j in range(lo, hi + 1) if j != i]
     out = []
-    for j in range(i + 1, len(vds)):
+    for j in sorted(cands, key=lambda j: (abs(vds[j].pos - a.pos), j)):
         b = vds[j]
-        if b.pos - a.pos > cfg.max_gap or len(out) >= cfg.max_partners:
+        if len(out) >= cfg.max_partners:
             break
-        if np.linalg.norm(b.T[:3, 3] - a.T[:3, 3]) < 0.05 or b.img is None:
+        if np.linalg.norm(b.T[:3, 3] - a.T[:3, 3]) < 0.05 or b.img is None or b.mask is None:
             continue  # no baseline: a stationary vehicle gives no depth
-        H = plane_homography(a.cam.K, a.T, b.cam.K, b.T, Z_UP, float(a.T[2, 3] - cfg.prior_height))
-        if _overlap(a, b, H) >= cfg.min_overlap:
+        mine, theirs = _overlap_between(a, b, cfg), _overlap_between(b, a, cfg)
+        if mine >= cfg.min_overlap and (mine > theirs or (mine == theirs and i < j)):
             out.append(j)
     return out
 
@@ -288,7 +304,7 @@ def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: Groun
             _load(seq, vds[loaded], views[loaded], cfg, *luts, far=bool(far.ref[loaded]), on_rgb=on_rgb)
             loaded += 1
         while vds[dropped].pos < a.pos - cfg.max_gap:  # an image is kept while a later reference checks in it
-            vds[dropped].img = None
+            vds[dropped].img = vds[dropped].mask = None
             dropped += 1
         _match_corners(vds, i, a.mask, cfg.max_corners, _partners(vds, i, cfg), cfg, acc)
         if a.far_mask is not None and (partners := _far_partners(vds, i, cfg)):
@@ -296,9 +312,9 @@ def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: Groun
             _match_corners(vds, i, a.far_mask, cfg.far_corners, partners, cfg, acc, far.normal[i], check=False)
             acc.far.append(np.arange(first, acc.n))
             acc.stats["far_pairs"] += 1
-        a.grey = a.label_ok = a.road = a.far_mask = a.mask = None
+        a.grey = a.label_ok = a.road = a.far_mask = None  # the mask stays while a later view may pair with a
     for vd in vds[dropped:]:
-        vd.img = None
+        vd.img = vd.mask = None
     return acc
 
 
@@ -310,8 +326,29 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
     Without semantics (or ``use_semantics=False``) ground is what lies below the horizon, within
     ``max_range`` on the prior plane, below its cameras and within ``corridor_m`` of the trajectory.
     ``observable`` is False (with the reason) below ``min_points`` points.
+
+    The sweep searches depths within ``sweep_range`` of the prior plane's, so a road far from the prior
+    height (poses with a wrong scale, a wrong mount height) is found only where it comes into that range, at
+    its end, and the camera height those points give is pulled towards the prior (poses x2: 2.3 m for a road
+    3.3 m below). Where the points' camera height lies in the outer half of the searched range, the search is
+    repeated once centred on it (``stats["recentred_from_m"]`` says from which prior).
     """
     cfg = cfg or GroundConfig()
+    gp = _find_ground_points(seq, cfg, min_points, on_rgb)
+    if not gp.observable:
+        return gp
+    found = [e.median for e in estimate_camera_height(seq, gp).values() if e.observable]
+    h = float(np.median(found)) if found else float("nan")
+    if not (np.isfinite(h) and h > 0 and abs(np.log(h / cfg.prior_height)) > cfg.sweep_range / 2):
+        return gp
+    again = _find_ground_points(seq, replace(cfg, prior_height=h), min_points, None)
+    again.stats["recentred_from_m"] = round(cfg.prior_height, 3)
+    return again
+
+
+def _find_ground_points(seq: Sequence, cfg: GroundConfig, min_points: int, on_rgb: RgbHook | None
+                        ) -> GroundPoints:
+    """One search of :func:`find_ground_points`, centred on ``cfg.prior_height``."""
     t0 = time.perf_counter()
     vds, views = [], []
     for pos, f in enumerate(seq.frames):
