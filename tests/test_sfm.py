@@ -113,6 +113,25 @@ def test_speed_check_passes_a_car_and_stops_a_jumping_path():
     assert "accel_unchecked" not in _checked(C, t) and _checked(C, t)["frame_times"] == "measured"
 
 
+def test_a_jump_the_road_measured_at_both_steps_is_reported_not_refused():
+    """The step-ratio check guards against an SfM scale jump. Clips 1 + 2 joined (as numbered): the road read a
+    13.0 m step (a keyframe missing from the copy) and then 1.2 m as the car braked, 10.8x apart. Both are the
+    road's own readings, so the path is kept and the jump is reported; the same path with SfM's lengths there
+    is refused. (Here 17.0 then 1.6 m: with 5 m steps around them a 1.2 m step counts as a stop.)"""
+    from pavemap.sfm.checks import SfmChecks, check_sfm
+
+    steps = [5.2, 5.4, 5.2, 17.0, 1.6, 2.2, 3.3, 4.3, 5.4, 5.0]
+    C = np.zeros((11, 3))
+    C[1:, 0] = np.cumsum(steps)
+    own = [False, False, False, True, True, False, False, False, False, False]
+    info = {"registered": 11, "keyframes": 11, "reproj_px": 0.5, "road_steps": {"own_reading": own}}
+    f = check_sfm(info, C, np.full(11, 1.5), SfmChecks())
+    assert f["max_step_ratio"] > 10 and "not refused" in f["step_ratio_unchecked"]
+    info["road_steps"]["own_reading"] = [False] * 10
+    with pytest.raises(PavemapError, match="the trajectory jumps"):
+        check_sfm(info, C, np.full(11, 1.5), SfmChecks())
+
+
 def test_fps_must_be_positive(tmp_path):
     cam = {"width": 32, "height": 24, "K": [[30, 0, 16], [0, 30, 12], [0, 0, 1]]}
     (tmp_path / "cameras.json").write_text(json.dumps({"cameras": {"c": cam}}))

@@ -28,7 +28,8 @@ class SfmChecks:
     - ``max_reproj_px``: mean reprojection error of the model.
     - ``max_turn_deg``: largest heading change between consecutive steps of the path.
     - ``max_step_ratio``: largest ratio of consecutive step lengths (a car does not teleport); steps
-      under a quarter of the median (stop and go) are left out.
+      under a quarter of the median (stop and go) are left out, and two steps that both took the road's own
+      length are reported (``step_ratio_unchecked``), not refused.
     - ``max_accel_mps2``: largest change of the path's speed per second, where the frame times are known
       (a video's frame rate, ``--fps``): speeds are averaged over ``accel_window_s`` so that the SfM
       positions' noise (~0.1 m) stays ~0.6 m/s² of it at 2 Hz. No car brakes or accelerates by more than ~1 g;
@@ -129,13 +130,19 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
     # a stopped car makes short steps, and restarts: only steps of a moving car are compared
     moving = 0.25 * float(np.median(L)) < L if L.size else L > 0
     turn = 0.0
-    ratio = 1.0
+    ratio = ratio_sfm = 1.0
     if moving.sum() >= 2:
         s = steps[moving] / L[moving, None]
         cos = np.clip((s[1:] * s[:-1]).sum(1), -1.0, 1.0)
         turn = float(np.degrees(np.arccos(cos)).max())
         r = L[moving][1:] / L[moving][:-1]
-        ratio = float(np.maximum(r, 1.0 / r).max())
+        r = np.maximum(r, 1.0 / r)
+        ratio = float(r.max())
+        # the jump guards against a scale jump of the SfM; two steps that both took the road's own length are
+        # what the road measured (a missing frame, hard braking), and are reported, not refused
+        own = np.asarray(info.get("road_steps", {}).get("own_reading") or [], bool)
+        road = own[moving][1:] & own[moving][:-1] if len(own) == len(L) else np.zeros(len(r), bool)
+        ratio_sfm = float(r[~road].max()) if (~road).any() else 1.0
     h = heights[np.isfinite(heights)]
     med = float(np.median(h)) if h.size else float("nan")
     # one camera's local road plane is noisy (few points, a kerb): judge the 10th-90th percentile band,
@@ -170,9 +177,14 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
     if turn > checks.max_turn_deg:
         raise PavemapError(f"SfM sanity check failed: the path turns {turn:.0f}° between two steps "
                            f"(> {checks.max_turn_deg:.0f}°): the trajectory is not a car's{tail}")
-    if ratio > checks.max_step_ratio:
-        raise PavemapError(f"SfM sanity check failed: one step of the path is {ratio:.1f}× the previous one "
+    if ratio_sfm > checks.max_step_ratio:
+        raise PavemapError(f"SfM sanity check failed: one step of the path is {ratio_sfm:.1f}× the previous one "
                            f"(> {checks.max_step_ratio}): the trajectory jumps{tail}")
+    if ratio > checks.max_step_ratio:
+        figures["step_ratio_unchecked"] = (f"one step of the path is {ratio:.1f}× the one before or after it "
+                                           f"(> {checks.max_step_ratio:g}), both as the road measured them: a "
+                                           "frame missing from the clip, or hard braking; not refused")
+        log.warning("SfM: %s", figures["step_ratio_unchecked"])
     if acc is not None and acc[0] > checks.max_accel_mps2 and checks.nominal_times:
         figures["accel_unchecked"] = (f"the path's speed changes by {acc[0]:.1f} m/s within one second "
                                       f"{acc[1]:.1f}-{acc[1] + 2 * checks.accel_window_s:.1f} s into the drive "
