@@ -146,13 +146,15 @@ def _overlap_between(a: ViewData, b: ViewData, cfg: GroundConfig) -> float:
     return _overlap(a, b, plane_homography(a.cam.K, a.T, b.cam.K, b.T, Z_UP, float(a.T[2, 3] - cfg.prior_height)))
 
 
-def _partners(vds: list[ViewData], i: int, cfg: GroundConfig) -> list[int]:
+def _partners(vds: list[ViewData], i: int, cfg: GroundConfig,
+              overlaps: dict[tuple[int, int], float] | None = None) -> list[int]:
     """Views within ``max_gap`` frames, earlier or later (same frame other cameras too), that see enough of i's
     ground and whose pair is i's to match: each pair is matched once, from the view whose ground the other sees
     more of. Going forwards that is the view ahead: its near road, sharp and textured, lies in the view behind,
     farther off, while the view behind sees its own near road not at all from ahead (on a 2 Hz synthetic
-    nuScenes-like drive matching from the view behind found 347 points, from the view ahead 1,927). A clip
-    numbered backwards, a reversing car and a rear camera get the same pairs."""
+    nuScenes-like drive matching from the view behind found 347 points, from the view ahead 1,949). A clip
+    numbered backwards, a reversing car and a rear camera get the same pairs. ``overlaps`` caches
+    :func:`_overlap_between` by (from, to) view: each pair is judged from both of its views."""
     a = vds[i]
     lo, hi = i, i  # views are in frame order
     while lo > 0 and a.pos - vds[lo - 1].pos <= cfg.max_gap:
@@ -160,6 +162,7 @@ def _partners(vds: list[ViewData], i: int, cfg: GroundConfig) -> list[int]:
     while hi + 1 < len(vds) and vds[hi + 1].pos - a.pos <= cfg.max_gap:
         hi += 1
     cands = [j for j in range(lo, hi + 1) if j != i]
+    overlaps = {} if overlaps is None else overlaps
     out = []
     for j in sorted(cands, key=lambda j: (abs(vds[j].pos - a.pos), j)):
         b = vds[j]
@@ -167,7 +170,10 @@ def _partners(vds: list[ViewData], i: int, cfg: GroundConfig) -> list[int]:
             break
         if np.linalg.norm(b.T[:3, 3] - a.T[:3, 3]) < 0.05 or b.img is None or b.mask is None:
             continue  # no baseline: a stationary vehicle gives no depth
-        mine, theirs = _overlap_between(a, b, cfg), _overlap_between(b, a, cfg)
+        for key in ((i, j), (j, i)):
+            if key not in overlaps:
+                overlaps[key] = _overlap_between(vds[key[0]], vds[key[1]], cfg)
+        mine, theirs = overlaps[i, j], overlaps[j, i]
         if mine >= cfg.min_overlap and (mine > theirs or (mine == theirs and i < j)):
             out.append(j)
     return out
@@ -295,6 +301,7 @@ def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: Groun
     reference needs them."""
     luts = (seq.class_lut("ground") & ~seq.class_lut("movable"), seq.class_lut("road"))
     acc = _Tracks({"views": len(vds), "pairs": 0, "matches": 0, "far_pairs": 0})
+    overlaps: dict[tuple[int, int], float] = {}  # a pair's overlaps, judged from both of its views
     loaded = dropped = 0
     for i, a in enumerate(vds):
         while loaded < len(vds) and (
@@ -305,8 +312,10 @@ def _match_all(seq: Sequence, vds: list[ViewData], views: list[View], cfg: Groun
             loaded += 1
         while vds[dropped].pos < a.pos - cfg.max_gap:  # an image is kept while a later reference checks in it
             vds[dropped].img = vds[dropped].mask = None
+            for key in [k for k in overlaps if dropped in k]:  # no later view pairs with it
+                del overlaps[key]
             dropped += 1
-        _match_corners(vds, i, a.mask, cfg.max_corners, _partners(vds, i, cfg), cfg, acc)
+        _match_corners(vds, i, a.mask, cfg.max_corners, _partners(vds, i, cfg, overlaps), cfg, acc)
         if a.far_mask is not None and (partners := _far_partners(vds, i, cfg)):
             first = acc.n
             _match_corners(vds, i, a.far_mask, cfg.far_corners, partners, cfg, acc, far.normal[i], check=False)

@@ -140,7 +140,7 @@ def check_sfm(info: dict, C: np.ndarray, heights: np.ndarray, checks: SfmChecks,
         ratio = float(r.max())
         # the jump guards against a scale jump of the SfM; two steps that both took the road's own length are
         # what the road measured (a missing frame, hard braking), and are reported, not refused
-        own = np.asarray(info.get("road_steps", {}).get("own_reading") or [], bool)
+        own = np.asarray((info.get("road_steps") or {}).get("own_reading") or [], bool)
         road = own[moving][1:] & own[moving][:-1] if len(own) == len(L) else np.zeros(len(r), bool)
         ratio_sfm = float(r[~road].max()) if (~road).any() else 1.0
     h = heights[np.isfinite(heights)]
