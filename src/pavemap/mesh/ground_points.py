@@ -156,14 +156,13 @@ def _partners(vds: list[ViewData], i: int, cfg: GroundConfig,
     numbered backwards, a reversing car and a rear camera get the same pairs. ``overlaps`` caches
     :func:`_overlap_between` by (from, to) view: each pair is judged from both of its views."""
     a = vds[i]
-    lo, hi = i, i  # views are in frame order
+    lo = hi = i  # views are in frame order
     while lo > 0 and a.pos - vds[lo - 1].pos <= cfg.max_gap:
         lo -= 1
     while hi + 1 < len(vds) and vds[hi + 1].pos - a.pos <= cfg.max_gap:
         hi += 1
     cands = [j for j in range(lo, hi + 1) if j != i]
-    overlaps = {} if overlaps is None else overlaps
-    out = []
+    overlaps, out = {} if overlaps is None else overlaps, []
     for j in sorted(cands, key=lambda j: (abs(vds[j].pos - a.pos), j)):
         b = vds[j]
         if len(out) >= cfg.max_partners:
@@ -336,11 +335,9 @@ def find_ground_points(seq: Sequence, cfg: GroundConfig | None = None, min_point
     ``max_range`` on the prior plane, below its cameras and within ``corridor_m`` of the trajectory.
     ``observable`` is False (with the reason) below ``min_points`` points.
 
-    The sweep searches depths within ``sweep_range`` of the prior plane's, so a road far from the prior
-    height (poses with a wrong scale, a wrong mount height) is found only where it comes into that range, at
-    its end, and the camera height those points give is pulled towards the prior (poses x2: 2.3 m for a road
-    3.3 m below). Where the points' camera height lies in the outer half of the searched range, the search is
-    repeated once centred on it (``stats["recentred_from_m"]`` says from which prior).
+    A road far from the prior height (poses with a wrong scale) enters the searched ``sweep_range`` only in part,
+    and those points pull the height to the prior (poses x2: 2.3 m for 3.3 m); a height in the outer half of
+    the range repeats the search centred on it (``stats["recentred_from_m"]``: the prior it left).
     """
     cfg = cfg or GroundConfig()
     gp = _find_ground_points(seq, cfg, min_points, on_rgb)
