@@ -39,6 +39,7 @@ from pavemap.errors import PavemapError
 from pavemap.geometry.road_height import camera_heights
 from pavemap.sfm.checks import SfmChecks, check_sfm, select_keyframes
 from pavemap.sfm.colmap import colmap_model, prepare_images
+from pavemap.sfm.held_log import held_records, replay, warnings_of
 from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_flags
 from pavemap.sfm.planar import planar_result
 from pavemap.sfm.report import write_sfm_report
@@ -88,9 +89,11 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     keyframes = select_keyframes(images, min_parallax, ego_mask) if min_parallax > 0 else np.ones(len(images), bool)
     info: dict = {"images": len(images), "keyframes": int(keyframes.sum()), "camera_height_m": camera_height,
                   "keyframe_index": np.flatnonzero(keyframes).tolist()}
-    # COLMAP logs every step at INFO to stderr; keep warnings, report progress ourselves
+    # COLMAP logs every step at INFO to stderr, and its bundle adjustment a "Linear solver failure" warning each
+    # time it retries a step with more damping (672 lines on a 47-frame clip): keep errors; what came of it is in
+    # sfm.json and our own messages (verbose: everything)
     old_level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING) if verbose is False else 0
+    pycolmap.logging.minloglevel = int(pycolmap.logging.ERROR) if verbose is False else 0
     own_tmp = workdir is None
     work = Path(tempfile.mkdtemp(prefix="pavemap-sfm-")) if own_tmp else Path(workdir)
     work.mkdir(parents=True, exist_ok=True)
@@ -114,11 +117,8 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
                           info, masks)
         if "intrinsics" in o:
             res.info["intrinsics_refinement"] = o["intrinsics"]
-        _set_scale(res, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
-        if method == "auto" and res.info.get("method") == "pycolmap SfM" and (
-                res.info["steps"]["repaired"] or res.registered[keyframes].sum() < keyframes.sum()):
-            res = _better_of(res, images, keyframes, camera, camera_height, ego_mask, limits, road_steps,
-                             dense_scale, hint, masks)
+        res = _scaled_best(res, method, images, keyframes, camera, camera_height, ego_mask, limits, road_steps,
+                           dense_scale, hint, masks)
         res.info["checks"] = check_sfm(res.info, res.T_world_cam[res.registered, :3, 3], res.info.pop("_heights"),
                                        checks, hint, None if times is None else np.asarray(times)[res.registered])
         fill_between_keyframes(res, keyframes)
@@ -133,6 +133,26 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
         pycolmap.logging.minloglevel = old_level
         if own_tmp:
             shutil.rmtree(work, ignore_errors=True)
+
+
+def _scaled_best(res: SfmResult, method: str, images: list[Path], keyframes: np.ndarray, camera: Camera,
+                 camera_height: float, ego_mask: np.ndarray | None, limits: PartLimits, road_steps: bool,
+                 dense_scale: bool, hint: str, masks: list[Path | None] | None) -> SfmResult:
+    """``res`` made metric, or (auto, COLMAP's path repaired or incomplete) the better of it and the car's planar
+    motion. Only the kept path's messages reach the log; the other's warnings are kept in
+    ``info["alternatives"]["warnings_of_the_path_not_kept"]`` (:mod:`pavemap.sfm.held_log`)."""
+    with held_records() as said:
+        _set_scale(res, images, camera, camera_height, ego_mask, road_steps, dense_scale, hint)
+    if method == "auto" and res.info.get("method") == "pycolmap SfM" and (
+            res.info["steps"]["repaired"] or res.registered[keyframes].sum() < keyframes.sum()):
+        with held_records() as said_alt:
+            best = _better_of(res, images, keyframes, camera, camera_height, ego_mask, limits, road_steps,
+                              dense_scale, hint, masks)
+        if best is not res:
+            said, said_alt, res = said_alt, said, best
+        res.info["alternatives"]["warnings_of_the_path_not_kept"] = warnings_of(said_alt)
+    replay(said)
+    return res
 
 
 def _check_inputs(images: list[Path], camera: Camera, camera_height: float, ego_mask: np.ndarray | None,

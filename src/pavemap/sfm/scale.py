@@ -86,6 +86,9 @@ def refine_scale(images: list[Path], T_world_cam: np.ndarray, camera: Camera, ca
         heights, stats = road_heights(images, T, camera, camera_height, ego_mask)
         h = heights[np.isfinite(heights)]
         if h.size < 3:
+            if stats.get("observable", True):  # points were found, but not under the path's cameras
+                stats["reason"] = (f"{stats.get('ground_points', 0)} road points, under only {h.size} of {len(T)} "
+                                   "cameras (need 3)")
             return float("nan"), heights, stats
         f = camera_height / float(np.median(h))
         factor *= f
@@ -161,7 +164,8 @@ def dense_rescale(res: SfmResult, images: list[Path], camera: Camera, camera_hei
     factor, heights, stats = refine_scale([images[i] for i in reg], T, camera, camera_height, ego_mask)
     res.info["dense_scale"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in stats.items()}
     if not np.isfinite(factor):
-        log.warning("SfM: dense road matching failed (%s); keeping the sparse scale", stats.get("reason"))
+        log.warning("SfM: dense road matching failed (%s); %s", stats.get("reason") or "no reason given",
+                    "keeping the sparse scale" if apply else "the road's step lengths keep the scale unchecked")
         return
     res.info["dense_scale"]["applied"] = apply
     if not apply and abs(factor - 1.0) > max_disagreement:
