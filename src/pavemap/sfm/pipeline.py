@@ -36,16 +36,16 @@ from pathlib import Path
 import numpy as np
 
 from pavemap.errors import PavemapError
-from pavemap.geometry.road_height import camera_heights
 from pavemap.sfm.checks import SfmChecks, check_sfm, select_keyframes
 from pavemap.sfm.colmap import colmap_model, prepare_images
+from pavemap.sfm.colmap_path import metric_result
 from pavemap.sfm.held_log import held_records, replay, warnings_of
-from pavemap.sfm.parts import PartLimits, consistent_parts, repair_skids, step_flags
+from pavemap.sfm.parts import PartLimits
 from pavemap.sfm.planar import planar_result
 from pavemap.sfm.report import write_sfm_report
 from pavemap.sfm.result import SfmRefusedError, SfmResult
 from pavemap.sfm.scale import dense_rescale, road_relength
-from pavemap.sfm.sparse import fill_between_keyframes, heights_below_path, road_candidates
+from pavemap.sfm.sparse import fill_between_keyframes
 from pavemap.types import Camera
 
 log = logging.getLogger(__name__)
@@ -101,7 +101,6 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
     hint = "too little texture or motion?" if masked else "if the ego vehicle (bonnet) is in view, give --ego-mask"
     try:
         image_dir, all_names = prepare_images(images, work)
-        names = [n for n, k in zip(all_names, keyframes, strict=True) if k]
         o = {"num_threads": num_threads, "max_features": max_features, "peak_threshold": peak_threshold,
              "overlap": overlap, "seed": seed, "init_min_tri_angle": init_min_tri_angle,
              "refine_intrinsics": refine_intrinsics, "min_share": max(checks.min_registered, 0.9),
@@ -112,9 +111,13 @@ def sfm_poses(images: list[Path], camera: Camera, camera_height: float = 1.5, wo
                                f"(need {limits.min_frames}; a parked car, or a frame rate far above the motion)")
         masks = _mover_masks(movers, images, all_names, keyframes, ego_mask, work, info) if movers else None
         o["mask_dir"] = None if masks is None else work / "masks"
-        rec = colmap_model(pycolmap, work, image_dir, names, camera, ego_mask, o) if method != "planar" else None
-        res = _first_path(rec, method, images, all_names, keyframes, camera, camera_height, ego_mask, limits, hint,
-                          info, masks)
+
+        def model(kf: np.ndarray):  # noqa: ANN202  COLMAP's model of the keyframes kf (N,) bool
+            return colmap_model(pycolmap, work, image_dir, [n for n, k in zip(all_names, kf, strict=True) if k],
+                                camera, ego_mask, o)
+
+        res, keyframes = _first_path(model, method, images, all_names, keyframes, camera, camera_height, ego_mask,
+                                     limits, hint, info, masks)
         if "intrinsics" in o:
             res.info["intrinsics_refinement"] = o["intrinsics"]
         res = _scaled_best(res, method, images, keyframes, camera, camera_height, ego_mask, limits, road_steps,
@@ -171,28 +174,74 @@ def _check_inputs(images: list[Path], camera: Camera, camera_height: float, ego_
         raise PavemapError(f"SfM method must be auto, colmap or planar, got {method!r}")
 
 
-def _first_path(rec, method: str, images: list[Path], names: list[str], keyframes: np.ndarray,  # noqa: ANN001
-                camera: Camera, camera_height: float, ego_mask: np.ndarray | None, limits: PartLimits, hint: str,
-                info: dict, masks: list[Path | None] | None) -> SfmResult:
-    """COLMAP's model ``rec`` made metric, or (``method`` auto / planar) the car's planar motion where COLMAP gave
-    no usable path: none, too few frames, or translations off the car's heading."""
+RETRY_PARALLAX = 0.01  # share of the image width: the keyframes of COLMAP's second try
+
+
+def _first_path(model: Callable[[np.ndarray], object], method: str, images: list[Path], names: list[str],
+                keyframes: np.ndarray, camera: Camera, camera_height: float, ego_mask: np.ndarray | None,
+                limits: PartLimits, hint: str, info: dict, masks: list[Path | None] | None
+                ) -> tuple[SfmResult, np.ndarray]:
+    """COLMAP's model of the keyframes made metric, or (``method`` auto / planar) the car's planar motion where
+    COLMAP gave no usable path: none, too few frames, or translations off the car's heading; and the keyframes
+    (N,) bool the path has. In auto, a failed COLMAP is tried once more on keyframes thinned to
+    ``RETRY_PARALLAX`` first: a car creeping in a queue (0.2-0.3 m steps at 2 Hz) gives COLMAP pairs with many
+    matches and almost no baseline; on a synthetic nuScenes-like drive its model then skewed the steps before
+    the creep 20-30 deg off the heading, and the planar motion that replaced it (no body roll in its model) left
+    the road unmeasurable: 12.7 % off the true path. Thinned, COLMAP kept its path to 0.25 %."""
     try:
         if method == "planar":
             raise PavemapError("planar motion asked for")
-        if rec is None:
-            raise PavemapError(f"SfM failed: no reconstruction from {int(keyframes.sum())} keyframes ({hint})")
-        res = _metric_result(rec, names, keyframes, camera, camera_height, limits, hint, info)
-        info["method"] = "pycolmap SfM"
-        if info.get("translations_rejected"):
-            raise PavemapError("SfM's steps point off the car's heading in most places (its translations are wrong)")
-        return res
+        return _colmap_result(model(keyframes), names, keyframes, camera, camera_height, limits, hint, info), keyframes
     except PavemapError as e:
         if method == "colmap":
             raise
         if method == "auto":
+            retried = _coarser_colmap(model, str(e), images, names, keyframes, camera, camera_height, ego_mask,
+                                      limits, hint, info)
+            if retried is not None:
+                return retried
             log.warning("SfM: %s; following the car's planar motion instead", e)
         info["sfm_failure"] = str(e)
-        return planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info, masks=masks)
+        return planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info,
+                             masks=masks), keyframes
+
+
+def _colmap_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera, camera_height: float,  # noqa: ANN001
+                   limits: PartLimits, hint: str, info: dict) -> SfmResult:
+    if rec is None:
+        raise PavemapError(f"SfM failed: no reconstruction from {int(keyframes.sum())} keyframes ({hint})")
+    res = metric_result(rec, names, keyframes, camera, camera_height, limits, hint, info)
+    info["method"] = "pycolmap SfM"
+    if info.get("translations_rejected"):
+        raise PavemapError("SfM's steps point off the car's heading in most places (its translations are wrong)")
+    return res
+
+
+def _coarser_colmap(model: Callable[[np.ndarray], object], failure: str, images: list[Path], names: list[str],
+                    keyframes: np.ndarray, camera: Camera, camera_height: float, ego_mask: np.ndarray | None,
+                    limits: PartLimits, hint: str, info: dict) -> tuple[SfmResult, np.ndarray] | None:
+    """COLMAP's second try on the keyframes that move ``RETRY_PARALLAX`` against the one before, or None (no
+    fewer keyframes, too few, or it fails too: ``info["sfm_retry"]`` says so)."""
+    kf = np.flatnonzero(keyframes)
+    coarse = np.zeros_like(keyframes)
+    coarse[kf[select_keyframes([images[i] for i in kf], RETRY_PARALLAX, ego_mask)]] = True
+    if not limits.min_frames <= coarse.sum() < keyframes.sum():
+        return None
+    retry = {"first_try": failure, "keyframes_before": int(keyframes.sum()), "keyframes": int(coarse.sum()),
+             "min_parallax": RETRY_PARALLAX}
+    trial = {k: info[k] for k in ("images", "camera_height_m", "movers") if k in info}
+    trial.update(keyframes=int(coarse.sum()), keyframe_index=np.flatnonzero(coarse).tolist(), sfm_retry=retry)
+    try:
+        res = _colmap_result(model(coarse), names, coarse, camera, camera_height, limits, hint, trial)
+    except PavemapError as e:
+        info["sfm_retry"] = {**retry, "failed": str(e)}
+        return None
+    log.info("SfM: COLMAP failed on %d keyframes (%s); on %d with more parallax it did not", retry["keyframes_before"],
+             failure, retry["keyframes"])
+    info.clear()
+    info.update(trial)
+    res.info = info
+    return res, coarse
 
 
 def _set_scale(res: SfmResult, images: list[Path], camera: Camera, camera_height: float,
@@ -278,146 +327,6 @@ def _better_of(res: SfmResult, images: list[Path], keyframes: np.ndarray, camera
         best.info["sfm_failure"] = f"{why}; the road measures more of the planar motion's steps"
         best.info["registered_by_sfm"] = res.info.get("registered_by_sfm")
     return best
-
-
-def _model_poses(rec, names: list[str], keyframes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                          np.ndarray]:
-    """SfM-frame camera-to-world poses (N, 4, 4) (NaN where not registered), ``registered`` (N,) bool (keyframes
-    only), K (3, 3) (pixel-centre convention) and the model's points (P, 3)."""
-    by_name = {img.name: img for img in rec.images.values()}
-    registered = np.array([n in by_name for n in names]) & keyframes
-    T_wc = np.full((len(names), 4, 4), np.nan)
-    for i in np.flatnonzero(registered):
-        T = np.eye(4)
-        T[:3, :4] = by_name[names[i]].cam_from_world().matrix()
-        T_wc[i] = np.linalg.inv(T)
-    cam = rec.cameras[next(iter(by_name.values())).camera_id] if by_name else None
-    fx, fy, cx, cy = (float(v) for v in cam.params[:4]) if cam is not None else (np.nan,) * 4
-    K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-    P = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
-    return T_wc, registered, K, P
-
-
-def _up(T_wc: np.ndarray, min_turn_deg: float = 30.0) -> np.ndarray:
-    """The road's "up" (3,) in the SfM frame from registered poses (R, 4, 4).
-
-    A car turns about the road's normal, which is fixed in the camera (the mount does not move): where the
-    path turns by ``min_turn_deg`` or more, up is the camera-frame axis that all the rotations map to one world
-    direction (the least-squares common axis; it does not need the translations, which forward-motion SfM gets
-    wrong first). On a straighter drive: the cameras' mean -y axis with the component along the drive removed
-    (the mount's pitch tilts -y forward or back; the drive is near-level on average)."""
-    C, R_wc = T_wc[:, :3, 3], T_wc[:, :3, :3]
-    f = R_wc[:, :, 2]
-    turned = np.degrees(np.arccos(np.clip(f @ f.T, -1.0, 1.0))).max() if len(f) > 1 else 0.0
-    if turned >= min_turn_deg:
-        dev = R_wc - R_wc.mean(0)
-        w, V = np.linalg.eigh(np.einsum("kji,kjl->il", dev, dev))  # sum_k dev_kᵀ dev_k
-        n_cam = V[:, 0] if V[1, 0] < 0 else -V[:, 0]  # up is the camera's -y side
-        up = (R_wc @ n_cam).mean(0)
-        return up / np.linalg.norm(up)
-    up = -R_wc[:, :, 1].mean(0)
-    _, _, Vt = np.linalg.svd(C - C.mean(0), full_matrices=False)
-    along = Vt[0]
-    up = up - (up @ along) * along if len(C) > 2 and np.ptp(C @ along) > 0 else up
-    return up / np.linalg.norm(up)
-
-
-def _keep_consistent(T_wc: np.ndarray, registered: np.ndarray, keyframes: np.ndarray, limits: PartLimits,
-                     info: dict) -> np.ndarray:
-    """``registered`` narrowed to the longest consistent part of the keyframes' path and the steps that skid
-    repaired onto the car's heading (in place in ``T_wc``) (:mod:`pavemap.sfm.parts`). ``info["dropped"]``
-    {frame: reason}, ``info["parts"]`` and ``info["steps"]`` say what was left out, repaired and why."""
-    kf = np.flatnonzero(keyframes)
-    reg_kf = registered[kf]
-    up = _up(T_wc[registered])
-    keep_kf, dropped, figures = consistent_parts(reg_kf, np.nan_to_num(T_wc[kf, :3, 3]),
-                                                 np.nan_to_num(T_wc[kf, :3, 2]), up, limits)
-    info["dropped"] = {int(kf[i]): why for i, why in sorted(dropped.items())}
-    info["parts"] = [[int(kf[a]), int(kf[b]), bool(k)] for a, b, k in figures["parts"]]
-    out = np.zeros_like(registered)
-    out[kf[keep_kf]] = True
-    if out.sum() < limits.min_frames:
-        longest = "none" if not out.any() else f"frames {kf[keep_kf][0]}-{kf[keep_kf][-1]}"
-        raise PavemapError(f"SfM: no consistent part of at least {limits.min_frames} keyframes to keep (longest: "
-                           f"{longest}, {int(out.sum())} keyframes; {int(reg_kf.sum())} of {len(kf)} registered)")
-    kept = np.flatnonzero(out)
-    flags = step_flags(T_wc[kept, :3, 3], T_wc[kept, :3, 2], up, limits)
-    moving = np.array([x is not None for x in flags["skid_deg"]], dtype=bool)
-    if flags["skids"].sum() > 0.5 * max(1, moving.sum()):
-        # most steps off the heading: SfM's translations are wrong as a whole, not here and there
-        flags["skids"] = np.ones_like(flags["skids"])
-        info["translations_rejected"] = True
-    T_wc[kept, :3, 3] = repair_skids(T_wc[kept, :3, 3], T_wc[kept, :3, 2], up, flags["skids"],
-                                     flags["mount_yaw_deg"], flags["reverse"])
-    if flags["reverse"]:
-        log.warning("SfM: the camera moves backwards along its view in most steps: are the frames numbered in "
-                    "reverse? (mapped as given: a reversing car)")
-    info["steps"] = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in flags.items() if k != "why"}
-    info["steps"]["repaired"] = np.flatnonzero(flags["skids"]).tolist()  # step k: kept frame k -> k+1
-    return out
-
-
-def _metric_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera, camera_height: float,
-                   limits: PartLimits, hint: str, info: dict) -> SfmResult:
-    """Keep the longest consistent part, scale it by the camera height, turn it z-up, and pack the result.
-
-    The scale here comes from the sparse road points under the path; where there are too few of them (SIFT
-    rarely lands on smooth asphalt) it is provisional and the road's step lengths or the dense road points
-    set it afterwards (:func:`sfm_poses`); ``info["scale_source"]`` says which."""
-    T_all, registered, K, P = _model_poses(rec, names, keyframes)
-    info.update(registered_by_sfm=int(registered.sum()), points=len(P),
-                reproj_px=float(rec.compute_mean_reprojection_error()))
-    info["_poses_sfm"] = T_all
-    if registered.sum() < 3:
-        raise PavemapError(f"SfM registered only {int(registered.sum())} of {int(keyframes.sum())} keyframes "
-                           f"({hint})")
-    registered = _keep_consistent(T_all, registered, keyframes, limits, info)
-    reg = np.flatnonzero(registered)
-    T_wc = T_all[reg]
-    C, R_wc = T_wc[:, :3, 3], T_wc[:, :3, :3]
-    up = _up(T_wc)
-    cand = road_candidates(P, C, R_wc, K, camera.width, camera.height, up)
-    heights, drive_over = heights_below_path(P[cand], C, up)
-    info.update(road_candidates=int(cand.sum()), road_points_under_path=int(drive_over.sum()))
-    if drive_over.sum() >= 3 and np.median(heights[drive_over]) > 0 and not info.get("translations_rejected"):
-        h_sfm = float(np.median(heights[drive_over]))
-        info["scale_source"] = "sparse road points under the path"
-        info["height_spread"] = float(np.median(np.abs(heights[drive_over] - h_sfm)) / h_sfm)
-    else:
-        # a provisional scale: a step of the median length taken as 5 m (a car at 36 km/h, 2 Hz); the road's
-        # step lengths replace it, and without them the import stops (sfm_poses)
-        steps = np.linalg.norm(np.diff(C, axis=0), axis=1)
-        h_sfm = camera_height * float(np.median(steps[steps > 0])) / 5.0 if (steps > 0).any() else 1.0
-        info["scale_source"] = ("provisional (SfM's translations rejected)" if info.get("translations_rejected")
-                                else "provisional (too few sparse road points)")
-    s = camera_height / h_sfm
-    n = up
-    # metric z-up world: z = n, x = driving direction in the plane, origin under camera 0
-    travel = C[-1] - C[0]
-    x = travel - (travel @ n) * n
-    if np.linalg.norm(x) < 1e-9:
-        x = R_wc[0][:, 2] - (R_wc[0][:, 2] @ n) * n
-    x /= np.linalg.norm(x)
-    A = np.stack([x, np.cross(n, x), n])  # rows: new axes in SfM coordinates
-    origin = C[0] - h_sfm * n
-    out = np.full((len(names), 4, 4), np.nan)
-    M = np.tile(np.eye(4), (len(reg), 1, 1))
-    M[:, :3, :3] = A @ R_wc
-    M[:, :3, 3] = s * (C - origin) @ A.T
-    U, _, Vt = np.linalg.svd(M[:, :3, :3])
-    M[:, :3, :3] = U @ Vt
-    out[reg] = M
-    # the dropped parts in the same frame, for the diagnosis figure only
-    moved = np.isfinite(T_all[:, 0, 0])
-    info["_poses_sfm"] = np.full_like(T_all, np.nan)
-    info["_poses_sfm"][moved, :3, 3] = s * (T_all[moved, :3, 3] - origin) @ A.T
-    pts = s * (P - origin) @ A.T
-    info.update(registered=int(registered.sum()), images=len(names), keyframes=int(keyframes.sum()))
-    info["K_refined"] = {k: round(float(v), 2) for k, v in zip(("fx", "fy", "cx", "cy"),
-                                                               (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), strict=True)}
-    road = pts[cand][drive_over]
-    info["_heights"] = camera_heights(road, M[:, :3, 3], np.array([0.0, 0.0, 1.0]), lateral=1.5 * camera_height)
-    return SfmResult(out, registered, float(s), int(drive_over.sum()), pts, info, K)
 
 
 def sfm_poses_or_report(out: Path, images: list[Path], camera: Camera, **kw: object) -> SfmResult:
