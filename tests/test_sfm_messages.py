@@ -103,13 +103,14 @@ def test_ground_points_found_but_not_under_the_path_say_so(monkeypatch):
 
 
 @pytest.mark.parametrize("second_try_works", [True, False])
-def test_a_failed_colmap_is_tried_once_more_on_thinned_keyframes(monkeypatch, second_try_works):
+def test_a_failed_colmap_is_tried_once_more_on_thinned_keyframes(monkeypatch, caplog, second_try_works):
     import pavemap.sfm.pipeline as pipe
 
     calls = []
 
     def colmap_result(rec, names, keyframes, camera, camera_height, limits, hint, info):  # noqa: ANN001
         calls.append(int(keyframes.sum()))
+        logging.getLogger(SCALE_LOG).warning("model of %d keyframes", keyframes.sum())
         if keyframes.all() or not second_try_works:
             raise PavemapError("SfM's steps point off the car's heading in most places")
         info["method"] = "pycolmap SfM"
@@ -120,12 +121,19 @@ def test_a_failed_colmap_is_tried_once_more_on_thinned_keyframes(monkeypatch, se
     monkeypatch.setattr(pipe, "select_keyframes", lambda imgs, parallax, mask: thin[: len(imgs)])
     monkeypatch.setattr(pipe, "planar_result", lambda *a, **k: _path("planar motion", []))
     info = {"images": 8, "keyframes": 8, "camera_height_m": 1.5}
+    caplog.set_level(logging.WARNING)
     res, kf = pipe._first_path(lambda kf: object(), "auto", [f"{i}.png" for i in range(8)], [str(i) for i in range(8)],
                                np.ones(8, bool), None, 1.5, None, pipe.PartLimits(), "", info, None)
     assert calls == [8, 6]
     if second_try_works:
         assert res.info is info and info["method"] == "pycolmap SfM" and kf.tolist() == thin.tolist()
         assert info["sfm_retry"]["keyframes_before"] == 8 and info["keyframe_index"] == [0, 2, 4, 5, 6, 7]
+        # the first model was replaced: only the kept one speaks on the console
+        assert info["sfm_retry"]["first_try_warnings"] == ["model of 8 keyframes"]
+        assert [r.getMessage() for r in caplog.records] == ["model of 6 keyframes"]
     else:
         assert res.info["method"] == "planar motion" and kf.all()
         assert "off the car's heading" in info["sfm_retry"]["failed"] and "sfm_failure" in info
+        assert info["sfm_retry"]["warnings"] == ["model of 6 keyframes"]
+        said = [r.getMessage() for r in caplog.records]
+        assert said[0] == "model of 8 keyframes" and "model of 6 keyframes" not in said

@@ -175,6 +175,7 @@ def _check_inputs(images: list[Path], camera: Camera, camera_height: float, ego_
 
 
 RETRY_PARALLAX = 0.01  # share of the image width: the keyframes of COLMAP's second try
+_INPUT_KEYS = ("images", "keyframes", "camera_height_m", "keyframe_index", "movers")  # what a path's info starts from
 
 
 def _first_path(model: Callable[[np.ndarray], object], method: str, images: list[Path], names: list[str],
@@ -188,22 +189,29 @@ def _first_path(model: Callable[[np.ndarray], object], method: str, images: list
     matches and almost no baseline; on a synthetic nuScenes-like drive its model then skewed the steps before
     the creep 20-30 deg off the heading, and the planar motion that replaced it (no body roll in its model) left
     the road unmeasurable: 12.7 % off the true path. Thinned, COLMAP kept its path to 0.25 %."""
-    try:
-        if method == "planar":
-            raise PavemapError("planar motion asked for")
-        return _colmap_result(model(keyframes), names, keyframes, camera, camera_height, limits, hint, info), keyframes
-    except PavemapError as e:
-        if method == "colmap":
-            raise
-        if method == "auto":
-            retried = _coarser_colmap(model, str(e), images, names, keyframes, camera, camera_height, ego_mask,
-                                      limits, hint, info)
-            if retried is not None:
-                return retried
-            log.warning("SfM: %s; following the car's planar motion instead", e)
-        info["sfm_failure"] = str(e)
-        return planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info,
-                             masks=masks), keyframes
+    err, res = PavemapError("planar motion asked for"), None
+    with held_records() as first_try:  # replayed unless the retry replaces the first try's model
+        try:
+            if method != "planar":
+                res = _colmap_result(model(keyframes), names, keyframes, camera, camera_height, limits, hint, info)
+        except PavemapError as e:
+            err = e
+    if res is None and method == "auto":
+        retried = _coarser_colmap(model, str(err), images, names, keyframes, camera, camera_height, ego_mask,
+                                  limits, hint, info)
+        if retried is not None:
+            retried[0].info["sfm_retry"]["first_try_warnings"] = warnings_of(first_try)
+            return retried
+    replay(first_try)
+    if res is not None:
+        return res, keyframes
+    if method == "colmap":
+        raise err
+    if method == "auto":
+        log.warning("SfM: %s; following the car's planar motion instead", err)
+    info["sfm_failure"] = str(err)
+    return planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, info,
+                         masks=masks), keyframes
 
 
 def _colmap_result(rec, names: list[str], keyframes: np.ndarray, camera: Camera, camera_height: float,  # noqa: ANN001
@@ -229,13 +237,17 @@ def _coarser_colmap(model: Callable[[np.ndarray], object], failure: str, images:
         return None
     retry = {"first_try": failure, "keyframes_before": int(keyframes.sum()), "keyframes": int(coarse.sum()),
              "min_parallax": RETRY_PARALLAX}
-    trial = {k: info[k] for k in ("images", "camera_height_m", "movers") if k in info}
+    trial = {k: info[k] for k in _INPUT_KEYS if k in info}
     trial.update(keyframes=int(coarse.sum()), keyframe_index=np.flatnonzero(coarse).tolist(), sfm_retry=retry)
-    try:
-        res = _colmap_result(model(coarse), names, coarse, camera, camera_height, limits, hint, trial)
-    except PavemapError as e:
-        info["sfm_retry"] = {**retry, "failed": str(e)}
+    with held_records() as said:
+        try:
+            res = _colmap_result(model(coarse), names, coarse, camera, camera_height, limits, hint, trial)
+        except PavemapError as e:
+            res, why = None, str(e)
+    if res is None:
+        info["sfm_retry"] = {**retry, "failed": why, "warnings": warnings_of(said)}
         return None
+    replay(said)
     log.info("SfM: COLMAP failed on %d keyframes (%s); on %d with more parallax it did not", retry["keyframes_before"],
              failure, retry["keyframes"])
     info.clear()
@@ -308,8 +320,7 @@ def _better_of(res: SfmResult, images: list[Path], keyframes: np.ndarray, camera
     planar motion is tried too and the path with more steps the road measured is kept (COLMAP on a tie);
     ``info["alternatives"]`` says what each scored. (A synthetic stop-and-go: COLMAP 2.2 % off its true path
     after three repairs, the planar motion 0.9 %.)"""
-    base = {k: v for k, v in res.info.items()
-            if k in ("images", "keyframes", "camera_height_m", "keyframe_index", "movers")}
+    base = {k: v for k, v in res.info.items() if k in _INPUT_KEYS}
     try:
         alt = planar_result(images, keyframes, camera, camera_height, ego_mask, limits.min_frames, dict(base),
                             masks=masks)
